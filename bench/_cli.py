@@ -1,0 +1,22 @@
+"""`badf bench NAME [flags]`: run one benchmark (engine, accuracy, service)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+_BENCHMARKS = {
+    "engine": ("badf.bench.engine", "per-stage build/update times, memory, and the dense-grid baseline"),
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("name", choices=sorted(_BENCHMARKS), help="; ".join(f"{k}: {v[1]}" for k, v in _BENCHMARKS.items()))
+    parser.add_argument("rest", nargs=argparse.REMAINDER, help="flags of that benchmark (see badf bench NAME --help)")
+
+
+def run(args: argparse.Namespace) -> int:
+    module = importlib.import_module(_BENCHMARKS[args.name][0])
+    sub = argparse.ArgumentParser(prog=f"badf bench {args.name}", description=_BENCHMARKS[args.name][1])
+    module.add_arguments(sub)
+    return int(module.run(sub.parse_args(args.rest)) or 0)
