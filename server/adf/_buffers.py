@@ -72,6 +72,13 @@ class HostReadback:
         self._wait()
         return int(self._host.numpy()[0])
 
+    def read_floats(self, arr: wp.array, count: int) -> tuple[float, ...]:
+        """The first `count` float32 values of arr."""
+        raw = wp.array(ptr=self._host.ptr, dtype=wp.float32, shape=(count,), device="cpu")
+        wp.copy(raw, arr, count=count)
+        self._wait()
+        return tuple(float(x) for x in raw.numpy())
+
     def read_array(self, arr: wp.array, count: int) -> np.ndarray:
         wp.copy(self._host, arr, count=count)
         self._wait()

@@ -306,6 +306,7 @@ class DistanceField:
             "depth": self._depth,
             "sign": self._sign,
             "sign_requested": self._sign_requested,
+            "sign_this_frame": self._normals.frame_method,
             "band": self._band,
             "coherence": self._coherence,
             "refine": self._refine,
@@ -367,6 +368,8 @@ class DistanceField:
                 self._bvh.refit(self._vertices, self._faces)
             with clock.stage("normals"):
                 self._normals.update(self._vertices)
+                extent = float(np.max(local_vertices.max(axis=0) - local_vertices.min(axis=0)))
+                self._normals.choose_frame_method(self._octree.host, extent)
             self._octree.build(self._vertices, self._faces, self._face_count, origin, side, clock)
             with clock.stage("distances"):
                 self._corners.compute(self._octree.corner_keys, self._octree.corner_count, self._bvh.view(),

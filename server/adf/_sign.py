@@ -175,21 +175,34 @@ class Pseudonormals:
         self.face_angles = b.array("sign.face_angles", self.face_count if active else 1, wp.vec3)
         self.vertex_normal = b.array("sign.vertex_normal", self.vertex_count, wp.vec3)
         self.edge_normal = b.array("sign.edge_normal", self.edge_count + 1 if active else 1, wp.vec3)
+        self.volume_area = b.array("sign.volume_area", 2, wp.float32)  # this frame's enclosed volume, area
+        self.frame_method = method  # what this frame uses: pseudonormal frames that enclose nothing use winding
 
     def update(self, vertices: wp.array) -> None:
         if self.method != "pseudonormal":
             return
+        self.volume_area.zero_()
         wp.launch(_face_normals, dim=self.face_count, inputs=[vertices, self.faces],
-                  outputs=[self.face_normal, self.face_angles], device=self.device)
+                  outputs=[self.face_normal, self.face_angles, self.volume_area], device=self.device)
         wp.launch(_vertex_normals, dim=self.vertex_count,
                   inputs=[self.vertex_corner_start, self.vertex_corner, self.face_normal, self.face_angles],
                   outputs=[self.vertex_normal], device=self.device)
         wp.launch(_edge_normals, dim=self.edge_count + 1, inputs=[self.edge_face_start, self.edge_face, self.face_normal],
                   outputs=[self.edge_normal], device=self.device)
 
+    def choose_frame_method(self, host, extent: float) -> str:
+        """Pseudonormals hold only while the mesh encloses volume, outward: a frame collapsed flat or turned
+        inside out (its faces then coincide or face inwards) is signed by winding numbers instead."""
+        self.frame_method = self.method
+        if self.method == "pseudonormal":
+            volume, area = host.read_floats(self.volume_area, 2)
+            if volume <= 0.0 or not encloses_volume(volume, area, extent):
+                self.frame_method = "winding"
+        return self.frame_method
+
     def view(self) -> SignView:
         v = SignView()
-        v.method = _SIGN_CODES[self.method]
+        v.method = _SIGN_CODES[self.frame_method]
         v.faces = self.welded_faces
         v.face_edge = self.face_edge
         v.face_normal = self.face_normal
@@ -231,6 +244,7 @@ def _face_normals(
     faces: wp.array(dtype=wp.vec3i),
     face_normal: wp.array(dtype=wp.vec3),
     face_angles: wp.array(dtype=wp.vec3),
+    volume_area: wp.array(dtype=wp.float32),
 ):
     f = wp.tid()
     tri = faces[f]
@@ -238,6 +252,8 @@ def _face_normals(
     b = vertices[tri[1]]
     c = vertices[tri[2]]
     n = wp.cross(b - a, c - a)
+    wp.atomic_add(volume_area, 0, wp.dot(a, wp.cross(b, c)) / 6.0)
+    wp.atomic_add(volume_area, 1, 0.5 * wp.length(n))
     longest_sq = wp.max(wp.max(wp.length_sq(b - a), wp.length_sq(c - b)), wp.length_sq(a - c))
     length = wp.length(n)
     if length <= _DEGENERATE * longest_sq or length == 0.0:
