@@ -4,10 +4,12 @@ Nodes live in one index space of 2n - 1: internal nodes 0..n-2 (0 is the root), 
 where leaf k is the k-th triangle in Morton order. The same radix-tree kernel builds the hierarchy the
 octree is read from (paper, Algorithm 1), over the sorted surface-cell keys instead of triangle keys.
 
-For the searches each internal node i keeps its two children in slots 2i and 2i + 1: the child's box, its
-node id, and the range of sorted triangles under it. One visit reads both children's boxes side by side,
-and a child with at most LEAF_SIZE triangles is searched directly over its contiguous triangles (the
-tree stays binary, one triangle per leaf, as the octree derivation needs; the searches just stop early).
+For the searches each internal node i keeps its two children in slots 2i and 2i + 1: the child's box (as
+two vec4, the lower corner's w holding the child's triangle count), its node id, and the range of sorted
+triangles under it. One visit reads both children's boxes in four 16-byte loads, and a child with at
+most LEAF_SIZE triangles is searched directly over its contiguous triangles (the tree stays binary, one
+triangle per leaf, as the octree derivation needs; the searches just stop early). Triangles are packed
+three vec4 per leaf, and the winding-number moments two vec4 per node, for the same reason.
 """
 
 from __future__ import annotations
@@ -22,8 +24,8 @@ from badf.server.adf._geometry import (
     KEY_TOP_BIT,
     box_distance_sq,
     clz64,
-    load_coherent_float,
-    load_coherent_vec3,
+    load_coherent_vec4,
+    load_vec4,
     morton3,
     quantize,
     solid_angle,
@@ -48,22 +50,18 @@ class BvhView:
     """What the query kernels read of a BVH."""
 
     internal_count: int
-    slot_lower: wp.array(dtype=wp.vec3)  # (2(n-1),) box of child s of node s // 2
-    slot_upper: wp.array(dtype=wp.vec3)
+    slot_lower: wp.array(dtype=wp.vec4)  # (2(n-1),) box of child s of node s // 2; w: its triangle count
+    slot_upper: wp.array(dtype=wp.vec4)
     slot_child: wp.array(dtype=wp.int32)  # node id of that child
     slot_first: wp.array(dtype=wp.int32)  # first sorted triangle under it
     slot_count: wp.array(dtype=wp.int32)  # triangles under it
-    tri_a: wp.array(dtype=wp.vec3)  # (n,) triangle corners of each leaf, in Morton order
-    tri_b: wp.array(dtype=wp.vec3)
-    tri_c: wp.array(dtype=wp.vec3)
+    triangles: wp.array(dtype=wp.vec4)  # (3n,) corners a, b, c of each leaf (Morton order), xyz
     leaf_face: wp.array(dtype=wp.int32)  # (n,) face index of each leaf
     face_leaf: wp.array(dtype=wp.int32)  # (n,) leaf of each face
     leaf_key: wp.array(dtype=wp.int64)  # (n,) sorted keys, for spatial seeds
     # Fast-winding-number moments per node (empty arrays when the sign does not need them).
-    area_normal: wp.array(dtype=wp.vec3)  # sum of area-weighted normals
-    centre: wp.array(dtype=wp.vec3)  # area-weighted centroid
-    radius: wp.array(dtype=wp.float32)  # bounds every triangle of the node around `centre`
-    area: wp.array(dtype=wp.float32)
+    centre_radius: wp.array(dtype=wp.vec4)  # area-weighted centroid; w: radius bounding the node around it
+    normal_area: wp.array(dtype=wp.vec4)  # sum of area-weighted normals; w: total area
 
 
 class Bvh:
@@ -82,19 +80,15 @@ class Bvh:
         self.face_leaf = b.array("bvh.face_leaf", n, wp.int32)  # inverse of sort_faces
         self.parent_slot = b.array("bvh.parent_slot", nodes, wp.int32)
         self.visits = b.array("bvh.visits", max(n - 1, 1), wp.int32)
-        self.slot_lower = b.array("bvh.slot_lower", slots, wp.vec3)
-        self.slot_upper = b.array("bvh.slot_upper", slots, wp.vec3)
+        self.slot_lower = b.array("bvh.slot_lower", slots, wp.vec4)
+        self.slot_upper = b.array("bvh.slot_upper", slots, wp.vec4)
         self.slot_child = b.array("bvh.slot_child", slots, wp.int32)
         self.slot_first = b.array("bvh.slot_first", slots, wp.int32)
         self.slot_count = b.array("bvh.slot_count", slots, wp.int32)
-        self.tri_a = b.array("bvh.tri_a", n, wp.vec3)
-        self.tri_b = b.array("bvh.tri_b", n, wp.vec3)
-        self.tri_c = b.array("bvh.tri_c", n, wp.vec3)
+        self.triangles = b.array("bvh.triangles", 3 * n, wp.vec4)
         moment_count = nodes if with_moments else 1
-        self.area_normal = b.array("bvh.area_normal", moment_count, wp.vec3)
-        self.centre = b.array("bvh.centre", moment_count, wp.vec3)
-        self.radius = b.array("bvh.radius", moment_count, wp.float32)
-        self.area = b.array("bvh.area", moment_count, wp.float32)
+        self.centre_radius = b.array("bvh.centre_radius", moment_count, wp.vec4)
+        self.normal_area = b.array("bvh.normal_area", moment_count, wp.vec4)
         self._buffers = b
 
     def build(self, vertices: wp.array, faces: wp.array, origin: wp.vec3, side: float) -> None:
@@ -134,10 +128,10 @@ class Bvh:
         wp.launch(
             _refit,
             dim=self.face_count,
-            inputs=[vertices, faces, self.sort_faces, self.parent_slot, self.slot_child, self.internal_count,
-                    1 if self.with_moments else 0],
-            outputs=[self.slot_lower, self.slot_upper, self.tri_a, self.tri_b, self.tri_c, self.visits,
-                     self.area_normal, self.centre, self.radius, self.area],
+            inputs=[vertices, faces, self.sort_faces, self.parent_slot, self.slot_child, self.slot_count,
+                    self.internal_count, 1 if self.with_moments else 0],
+            outputs=[self.slot_lower, self.slot_upper, self.triangles, self.visits, self.centre_radius,
+                     self.normal_area],
             device=self.device,
         )
 
@@ -146,11 +140,11 @@ class Bvh:
         v.internal_count = self.internal_count
         v.slot_lower, v.slot_upper = self.slot_lower, self.slot_upper
         v.slot_child, v.slot_first, v.slot_count = self.slot_child, self.slot_first, self.slot_count
-        v.tri_a, v.tri_b, v.tri_c = self.tri_a, self.tri_b, self.tri_c
+        v.triangles = self.triangles
         v.leaf_face = self.sort_faces
         v.face_leaf = self.face_leaf
         v.leaf_key = self.sort_keys
-        v.area_normal, v.centre, v.radius, v.area = self.area_normal, self.centre, self.radius, self.area
+        v.centre_radius, v.normal_area = self.centre_radius, self.normal_area
         return v
 
     def leaf_faces(self) -> np.ndarray:
@@ -202,8 +196,23 @@ def spatial_seed(bvh: BvhView, p: wp.vec3, origin: wp.vec3, inv_side: float) -> 
 
 
 @wp.func
+def leaf_triangle(bvh: BvhView, leaf: int):
+    """Corners (a, b, c) of the triangle at sorted leaf `leaf`."""
+    a = load_vec4(bvh.triangles, 3 * leaf)
+    b = load_vec4(bvh.triangles, 3 * leaf + 1)
+    c = load_vec4(bvh.triangles, 3 * leaf + 2)
+    return wp.vec3(a[0], a[1], a[2]), wp.vec3(b[0], b[1], b[2]), wp.vec3(c[0], c[1], c[2])
+
+
+@wp.func
 def leaf_distance_sq(bvh: BvhView, leaf: int, p: wp.vec3) -> float:
-    return triangle_distance_sq(p, bvh.tri_a[leaf], bvh.tri_b[leaf], bvh.tri_c[leaf])
+    a, b, c = leaf_triangle(bvh, leaf)
+    return triangle_distance_sq(p, a, b, c)
+
+
+@wp.func
+def _xyz(v: wp.vec4) -> wp.vec3:
+    return wp.vec3(v[0], v[1], v[2])
 
 
 @wp.func
@@ -235,17 +244,24 @@ def nearest_leaf(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float):
         if bounds[count] >= best_sq:
             continue
         slot = 2 * nodes[count]
+        lower_0 = load_vec4(bvh.slot_lower, slot)
+        lower_1 = load_vec4(bvh.slot_lower, slot + 1)
+        d_0 = box_distance_sq(p, _xyz(lower_0), _xyz(load_vec4(bvh.slot_upper, slot)))
+        d_1 = box_distance_sq(p, _xyz(lower_1), _xyz(load_vec4(bvh.slot_upper, slot + 1)))
         near = slot
         far = slot + 1
-        d_near = box_distance_sq(p, bvh.slot_lower[slot], bvh.slot_upper[slot])
-        d_far = box_distance_sq(p, bvh.slot_lower[slot + 1], bvh.slot_upper[slot + 1])
-        if d_far < d_near:
+        d_near = d_0
+        d_far = d_1
+        near_small = lower_0[3] <= float(LEAF_SIZE)
+        far_small = lower_1[3] <= float(LEAF_SIZE)
+        if d_1 < d_0:
             near = slot + 1
             far = slot
-            d_near, d_far = d_far, d_near
+            d_near = d_1
+            d_far = d_0
+            near_small = lower_1[3] <= float(LEAF_SIZE)
+            far_small = lower_0[3] <= float(LEAF_SIZE)
         # small subtrees first, the nearer one first, so the bound tightens before the far test
-        near_small = bvh.slot_count[near] <= LEAF_SIZE
-        far_small = bvh.slot_count[far] <= LEAF_SIZE
         if near_small and d_near < best_sq:
             best_leaf, best_sq = _nearest_in_range(bvh, p, bvh.slot_first[near], bvh.slot_count[near], best_leaf, best_sq)
         if far_small and d_far < best_sq:
@@ -265,7 +281,8 @@ def nearest_leaf(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float):
 def _solid_angle_of_range(bvh: BvhView, p: wp.vec3, first: int, count: int) -> float:
     total = float(0.0)
     for leaf in range(first, first + count):
-        total += solid_angle(p, bvh.tri_a[leaf], bvh.tri_b[leaf], bvh.tri_c[leaf])
+        a, b, c = leaf_triangle(bvh, leaf)
+        total += solid_angle(p, a, b, c)
     return total
 
 
@@ -283,10 +300,11 @@ def winding_number(bvh: BvhView, p: wp.vec3) -> float:
         slot = 2 * nodes[count]
         for side in range(2):
             child = bvh.slot_child[slot + side]
-            offset = bvh.centre[child] - p
+            centre_radius = load_vec4(bvh.centre_radius, child)
+            offset = _xyz(centre_radius) - p
             dist = wp.length(offset)
-            if dist > _FAR_FIELD * bvh.radius[child]:
-                total += wp.dot(bvh.area_normal[child], offset) / (dist * dist * dist)
+            if dist > _FAR_FIELD * centre_radius[3]:
+                total += wp.dot(_xyz(load_vec4(bvh.normal_area, child)), offset) / (dist * dist * dist)
             elif bvh.slot_count[slot + side] <= LEAF_SIZE:
                 total += _solid_angle_of_range(bvh, p, bvh.slot_first[slot + side], bvh.slot_count[slot + side])
             else:
@@ -419,66 +437,64 @@ def _refit(
     leaf_face: wp.array(dtype=wp.int32),
     parent_slot: wp.array(dtype=wp.int32),
     slot_child: wp.array(dtype=wp.int32),
+    slot_count: wp.array(dtype=wp.int32),
     internal_count: int,
     with_moments: int,
-    slot_lower: wp.array(dtype=wp.vec3),
-    slot_upper: wp.array(dtype=wp.vec3),
-    tri_a: wp.array(dtype=wp.vec3),
-    tri_b: wp.array(dtype=wp.vec3),
-    tri_c: wp.array(dtype=wp.vec3),
+    slot_lower: wp.array(dtype=wp.vec4),
+    slot_upper: wp.array(dtype=wp.vec4),
+    triangles: wp.array(dtype=wp.vec4),
     visits: wp.array(dtype=wp.int32),
-    area_normal: wp.array(dtype=wp.vec3),
-    centre: wp.array(dtype=wp.vec3),
-    radius: wp.array(dtype=wp.float32),
-    area: wp.array(dtype=wp.float32),
+    centre_radius: wp.array(dtype=wp.vec4),
+    normal_area: wp.array(dtype=wp.vec4),
 ):
     k = wp.tid()
     tri = faces[leaf_face[k]]
     a = vertices[tri[0]]
     b = vertices[tri[1]]
     c = vertices[tri[2]]
-    tri_a[k] = a
-    tri_b[k] = b
-    tri_c[k] = c
+    triangles[3 * k] = wp.vec4(a[0], a[1], a[2], 0.0)
+    triangles[3 * k + 1] = wp.vec4(b[0], b[1], b[2], 0.0)
+    triangles[3 * k + 2] = wp.vec4(c[0], c[1], c[2], 0.0)
     node = internal_count + k
     lower = wp.min(wp.min(a, b), c)
     upper = wp.max(wp.max(a, b), c)
     if with_moments != 0:
         n = 0.5 * wp.cross(b - a, c - a)
         mid = (a + b + c) / 3.0
-        area_normal[node] = n
-        centre[node] = mid
-        area[node] = wp.length(n)
-        radius[node] = wp.max(wp.max(wp.length(a - mid), wp.length(b - mid)), wp.length(c - mid))
+        radius = wp.max(wp.max(wp.length(a - mid), wp.length(b - mid)), wp.length(c - mid))
+        centre_radius[node] = wp.vec4(mid[0], mid[1], mid[2], radius)
+        normal_area[node] = wp.vec4(n[0], n[1], n[2], wp.length(n))
     # Walk up; each node's box goes into its slot in the parent, and the second child to arrive at a node
     # merges both (Karras 2012). Writers fence before counting their arrival and the merger reads its
     # children from L2, so no stale value is merged.
     slot = parent_slot[node]
     while slot >= 0:
-        slot_lower[slot] = lower
-        slot_upper[slot] = upper
+        count = float(slot_count[slot])
+        slot_lower[slot] = wp.vec4(lower[0], lower[1], lower[2], count)
+        slot_upper[slot] = wp.vec4(upper[0], upper[1], upper[2], count)
         thread_fence()
         node = slot // 2
         if wp.atomic_add(visits, node, 1) == 0:
             return
-        lower = wp.min(load_coherent_vec3(slot_lower, 2 * node), load_coherent_vec3(slot_lower, 2 * node + 1))
-        upper = wp.max(load_coherent_vec3(slot_upper, 2 * node), load_coherent_vec3(slot_upper, 2 * node + 1))
+        lower_0 = load_coherent_vec4(slot_lower, 2 * node)
+        lower_1 = load_coherent_vec4(slot_lower, 2 * node + 1)
+        upper_0 = load_coherent_vec4(slot_upper, 2 * node)
+        upper_1 = load_coherent_vec4(slot_upper, 2 * node + 1)
+        lower = wp.min(_xyz(lower_0), _xyz(lower_1))
+        upper = wp.max(_xyz(upper_0), _xyz(upper_1))
         if with_moments != 0:
-            l = slot_child[2 * node]
-            r = slot_child[2 * node + 1]
-            area_l = load_coherent_float(area, l)
-            area_r = load_coherent_float(area, r)
-            centre_l = load_coherent_vec3(centre, l)
-            centre_r = load_coherent_vec3(centre, r)
-            total = area_l + area_r
+            moment_l = load_coherent_vec4(centre_radius, slot_child[2 * node])
+            moment_r = load_coherent_vec4(centre_radius, slot_child[2 * node + 1])
+            normal_l = load_coherent_vec4(normal_area, slot_child[2 * node])
+            normal_r = load_coherent_vec4(normal_area, slot_child[2 * node + 1])
+            total = normal_l[3] + normal_r[3]
+            centre_l = _xyz(moment_l)
+            centre_r = _xyz(moment_r)
             mid = 0.5 * (centre_l + centre_r)
             if total > 0.0:
-                mid = (area_l * centre_l + area_r * centre_r) / total
-            area_normal[node] = load_coherent_vec3(area_normal, l) + load_coherent_vec3(area_normal, r)
-            centre[node] = mid
-            area[node] = total
-            radius[node] = wp.max(
-                wp.length(centre_l - mid) + load_coherent_float(radius, l),
-                wp.length(centre_r - mid) + load_coherent_float(radius, r),
-            )
+                mid = (normal_l[3] * centre_l + normal_r[3] * centre_r) / total
+            radius = wp.max(wp.length(centre_l - mid) + moment_l[3], wp.length(centre_r - mid) + moment_r[3])
+            centre_radius[node] = wp.vec4(mid[0], mid[1], mid[2], radius)
+            n = _xyz(normal_l) + _xyz(normal_r)
+            normal_area[node] = wp.vec4(n[0], n[1], n[2], total)
         slot = parent_slot[node]

@@ -13,7 +13,7 @@ import numpy as np
 import warp as wp
 
 from badf.server.adf._buffers import DeviceBuffers
-from badf.server.adf._bvh import BvhView, leaf_distance_sq, nearest_leaf, spatial_seed
+from badf.server.adf._bvh import BvhView, leaf_distance_sq, leaf_triangle, nearest_leaf, spatial_seed
 from badf.server.adf._geometry import closest_point_on_triangle, morton3, morton3_decode, quantize
 from badf.server.adf._octree import OctreeView, leaf_corner, locate
 from badf.server.adf._sign import SIGN_PSEUDONORMAL, SIGN_WINDING, SignView, feature_normal, inside_by_pseudonormal, inside_by_winding
@@ -181,7 +181,8 @@ def query_kernel(method: int) -> wp.Kernel:
 
 @wp.func
 def _face_normal(bvh: BvhView, leaf: int) -> wp.vec3:
-    n = wp.cross(bvh.tri_b[leaf] - bvh.tri_a[leaf], bvh.tri_c[leaf] - bvh.tri_a[leaf])
+    a, b, c = leaf_triangle(bvh, leaf)
+    n = wp.cross(b - a, c - a)
     length = wp.length(n)
     if length > 0.0:
         return n / length
@@ -236,7 +237,8 @@ def _make_corner_kernel(method: int) -> wp.Kernel:
             d = wp.sqrt(best_sq)
             nearest[i] = leaf
             if wp.static(pseudonormal):
-                closest, feature = closest_point_on_triangle(p, bvh.tri_a[leaf], bvh.tri_b[leaf], bvh.tri_c[leaf])
+                a, b, c = leaf_triangle(bvh, leaf)
+                closest, feature = closest_point_on_triangle(p, a, b, c)
                 inside = inside_by_pseudonormal(sign, bvh, p, bvh.leaf_face[leaf], closest, feature)
         else:
             nearest[i] = seed
@@ -351,7 +353,8 @@ def _make_query_kernel(method: int) -> wp.Kernel:
             if outputs & _OUT_FACE:
                 out_face[i] = -1
             return
-        closest, feature = closest_point_on_triangle(p, bvh.tri_a[leaf], bvh.tri_b[leaf], bvh.tri_c[leaf])
+        a, b, c = leaf_triangle(bvh, leaf)
+        closest, feature = closest_point_on_triangle(p, a, b, c)
         face = bvh.leaf_face[leaf]
         offset = p - closest
         d = wp.sqrt(best_sq)

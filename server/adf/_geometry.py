@@ -106,25 +106,28 @@ def thread_fence(): ...
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
-const float* ptr = (const float*)(&arr.data[0]) + 3 * i;
-return wp::vec3(__ldcg(ptr), __ldcg(ptr + 1), __ldcg(ptr + 2));
+const float4 v = __ldcg(reinterpret_cast<const float4*>(&arr.data[0]) + i);
+return wp::vec4(v.x, v.y, v.z, v.w);
 #else
 return arr.data[i];
 #endif
 """)
-def load_coherent_vec3(arr: wp.array(dtype=wp.vec3), i: int) -> wp.vec3:
-    """Read arr[i] from L2, past this SM's L1, for values other blocks wrote during the same launch."""
+def load_coherent_vec4(arr: wp.array(dtype=wp.vec4), i: int) -> wp.vec4:
+    """Read arr[i] from L2 in one 16-byte load, past this SM's L1 (values written in the same launch)."""
     ...
 
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
-return __ldcg(&arr.data[i]);
+const float4 v = __ldg(reinterpret_cast<const float4*>(&arr.data[0]) + i);
+return wp::vec4(v.x, v.y, v.z, v.w);
 #else
 return arr.data[i];
 #endif
 """)
-def load_coherent_float(arr: wp.array(dtype=wp.float32), i: int) -> float: ...
+def load_vec4(arr: wp.array(dtype=wp.vec4), i: int) -> wp.vec4:
+    """Read arr[i] in one 16-byte load through the read-only cache (arrays no thread of the launch writes)."""
+    ...
 
 
 @wp.func
