@@ -1,12 +1,33 @@
-from __future__ import annotations
-
+import pathlib
 import socket
-from pathlib import Path
+import sys
+import time
 
 import pytest
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+
+REPO_ROOT = pathlib.Path(__file__).resolve().parents[1]
 DATA_DIR = REPO_ROOT.parent / "shared" / "data"  # ../shared/data from the repository root
+
+
+def _devices() -> list[str]:
+    try:
+        import warp as wp
+    except ImportError:
+        return []
+    wp.config.log_level = wp.LOG_ERROR
+    wp.init()
+    return ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
+
+
+DEVICES = _devices()
+
+
+@pytest.fixture(params=DEVICES)
+def device(request) -> str:
+    """Every engine test runs on the CPU back-end, and on the first GPU when there is one."""
+    return request.param
 
 
 def free_endpoint() -> str:
@@ -23,8 +44,6 @@ def endpoint() -> str:
 
 def wait_until(condition, *, timeout: float = 20.0, what: str = "the condition") -> None:
     """Return as soon as `condition()` is true; fail the test when `timeout` seconds pass first."""
-    import time
-
     deadline = time.monotonic() + timeout
     pause = 0.002
     while not condition():

@@ -66,23 +66,47 @@ def _batches(point_count: int, face_count: int):
         yield slice(start, min(point_count, start + step))
 
 
-def nearest(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> Nearest:
-    """Unsigned distance, a nearest face and the closest point for each point, by brute force in float64."""
+def nearest(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, *, prune: bool = True) -> Nearest:
+    """Unsigned distance, a nearest face and the closest point for each point, in float64.
+
+    With prune=True only the triangles that could be nearest are evaluated: a triangle's centroid lies on
+    it, so the nearest centroid bounds the distance from above, and no point of a triangle is closer than
+    (distance to its centroid - its circumradius about the centroid). The bound is exact, not a heuristic;
+    tests/test_oracle.py checks the two paths agree.
+    """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
-    a, b, c = tri[None, :, 0], tri[None, :, 1], tri[None, :, 2]
     distance = np.empty(len(points))
     face = np.empty(len(points), dtype=np.int64)
     closest = np.empty((len(points), 3))
+    if not prune:
+        a, b, c = tri[None, :, 0], tri[None, :, 1], tri[None, :, 2]
+        for rows in _batches(len(points), len(tri)):
+            p = points[rows, None, :]
+            q = closest_points_on_triangles(p, a, b, c)
+            d_sq = _dot(p - q, p - q)
+            best = np.argmin(d_sq, axis=1)
+            idx = np.arange(len(best))
+            distance[rows] = np.sqrt(d_sq[idx, best])
+            face[rows] = best
+            closest[rows] = q[idx, best]
+        return Nearest(distance, face, closest)
+    centroid = tri.mean(axis=1)
+    radius = np.linalg.norm(tri - centroid[:, None, :], axis=2).max(axis=1)
     for rows in _batches(len(points), len(tri)):
-        p = points[rows, None, :]
-        q = closest_points_on_triangles(p, a, b, c)
-        d_sq = _dot(p - q, p - q)
-        best = np.argmin(d_sq, axis=1)
-        idx = np.arange(len(best))
-        distance[rows] = np.sqrt(d_sq[idx, best])
-        face[rows] = best
-        closest[rows] = q[idx, best]
+        p = points[rows]
+        to_centroid = np.linalg.norm(p[:, None, :] - centroid[None, :, :], axis=2)
+        upper = to_centroid.min(axis=1)
+        # keep every triangle whose lower bound does not exceed the upper bound (with rounding room)
+        slack = 1e-9 * (upper + radius.max())
+        point_idx, tri_idx = np.nonzero(to_centroid - radius[None, :] <= (upper + slack)[:, None])
+        q = closest_points_on_triangles(p[point_idx], tri[tri_idx, 0], tri[tri_idx, 1], tri[tri_idx, 2])
+        d_sq = _dot(p[point_idx] - q, p[point_idx] - q)
+        order = np.lexsort((d_sq, point_idx))  # by point, then distance
+        first = order[np.r_[True, point_idx[order][1:] != point_idx[order][:-1]]]
+        distance[rows] = np.sqrt(d_sq[first])
+        face[rows] = tri_idx[first]
+        closest[rows] = q[first]
     return Nearest(distance, face, closest)
 
 

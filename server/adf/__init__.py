@@ -1,1 +1,13 @@
-"""placeholder"""
+"""The ADF engine: a triangle mesh and its adaptive distance field on one device, usable in-process.
+
+    from badf.server.adf import DistanceField
+    field = DistanceField(vertices, faces, depth=7, sign="auto")
+    field.update(new_vertices)
+    result = field.query(points, mode="adf", outputs=("distance", "normal"))
+"""
+
+from badf.server.adf._field import DistanceField, QueryResult
+from badf.server.adf._inputs import QUERY_MODES, QUERY_OUTPUTS, InvalidInputError
+from badf.server.adf._sign import SIGN_METHODS
+
+__all__ = ["DistanceField", "QueryResult", "InvalidInputError", "QUERY_MODES", "QUERY_OUTPUTS", "SIGN_METHODS"]

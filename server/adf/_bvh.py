@@ -1,0 +1,421 @@
+"""The BVH: triangles sorted by Morton code, Karras's (2012) radix tree over the codes, bottom-up refit.
+
+Nodes live in one index space of 2n - 1: internal nodes 0..n-2 (0 is the root), then leaf k at n - 1 + k,
+where leaf k is the k-th triangle in Morton order. The same radix-tree kernel builds the hierarchy the
+octree is read from (paper, Algorithm 1), over the sorted surface-cell keys instead of triangle keys.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from badf.server.adf._buffers import DeviceBuffers
+from badf.server.adf._geometry import (
+    KEY_TOP_BIT,
+    box_distance_sq,
+    clz64,
+    load_coherent_float,
+    load_coherent_vec3,
+    morton3,
+    quantize,
+    solid_angle,
+    stack_float,
+    stack_int,
+    thread_fence,
+    triangle_distance_sq,
+)
+from badf.server.adf._tolerances import WINDING_FAR_FIELD
+
+# Triangle centroids are quantised to 2^10 cells per axis for the BVH order: a 30-bit code, placed at
+# bits 61..32 of the key, with the face index below it so every key is unique.
+BVH_CODE_LEVELS = 10
+_CODE_SHIFT = wp.constant(32)
+_FAR_FIELD = wp.constant(WINDING_FAR_FIELD)
+_INV_FOUR_PI = wp.constant(1.0 / (4.0 * math.pi))
+
+
+@wp.struct
+class BvhView:
+    """What the query kernels read of a BVH."""
+
+    internal_count: int
+    lower: wp.array(dtype=wp.vec3)  # (2n-1,) node boxes
+    upper: wp.array(dtype=wp.vec3)
+    left: wp.array(dtype=wp.int32)  # (n-1,) children of internal nodes
+    right: wp.array(dtype=wp.int32)
+    tri_a: wp.array(dtype=wp.vec3)  # (n,) triangle corners of each leaf, in Morton order
+    tri_b: wp.array(dtype=wp.vec3)
+    tri_c: wp.array(dtype=wp.vec3)
+    leaf_face: wp.array(dtype=wp.int32)  # (n,) face index of each leaf
+    face_leaf: wp.array(dtype=wp.int32)  # (n,) leaf of each face
+    leaf_key: wp.array(dtype=wp.int64)  # (n,) sorted keys, for spatial seeds
+    # Fast-winding-number moments per node (empty arrays when the sign does not need them).
+    area_normal: wp.array(dtype=wp.vec3)  # sum of area-weighted normals
+    centre: wp.array(dtype=wp.vec3)  # area-weighted centroid
+    area: wp.array(dtype=wp.float32)
+    radius: wp.array(dtype=wp.float32)  # bounds every triangle of the node around `centre`
+
+
+class Bvh:
+    """Owns the BVH's device buffers for one mesh; `build` sorts and links, `refit` updates the boxes."""
+
+    def __init__(self, face_count: int, *, with_moments: bool, buffers: DeviceBuffers):
+        self.face_count = face_count
+        self.internal_count = face_count - 1
+        self.with_moments = with_moments
+        self.device = buffers.device
+        n, nodes = face_count, 2 * face_count - 1
+        b = buffers
+        # radix_sort_pairs needs room for twice the count
+        self.sort_keys = b.array("bvh.sort_keys", 2 * n, wp.int64)
+        self.sort_faces = b.array("bvh.sort_faces", 2 * n, wp.int32)
+        self.face_leaf = b.array("bvh.face_leaf", n, wp.int32)  # inverse of sort_faces
+        self.parent = b.array("bvh.parent", nodes, wp.int32)
+        self.left = b.array("bvh.left", max(n - 1, 1), wp.int32)
+        self.right = b.array("bvh.right", max(n - 1, 1), wp.int32)
+        self.first = b.array("bvh.first", max(n - 1, 1), wp.int32)
+        self.prefix = b.array("bvh.prefix", max(n - 1, 1), wp.int32)
+        self.visits = b.array("bvh.visits", max(n - 1, 1), wp.int32)
+        self.lower = b.array("bvh.lower", nodes, wp.vec3)
+        self.upper = b.array("bvh.upper", nodes, wp.vec3)
+        self.tri_a = b.array("bvh.tri_a", n, wp.vec3)
+        self.tri_b = b.array("bvh.tri_b", n, wp.vec3)
+        self.tri_c = b.array("bvh.tri_c", n, wp.vec3)
+        moment_count = nodes if with_moments else 1
+        self.area_normal = b.array("bvh.area_normal", moment_count, wp.vec3)
+        self.centre = b.array("bvh.centre", moment_count, wp.vec3)
+        self.area = b.array("bvh.area", moment_count, wp.float32)
+        self.radius = b.array("bvh.radius", moment_count, wp.float32)
+
+    def build(self, vertices: wp.array, faces: wp.array, origin: wp.vec3, side: float) -> None:
+        """Sort the triangles by the Morton code of their centroid in the domain and link the tree."""
+        n = self.face_count
+        resolution = 1 << BVH_CODE_LEVELS
+        wp.launch(
+            _triangle_keys,
+            dim=n,
+            inputs=[vertices, faces, origin, resolution / side, resolution],
+            outputs=[self.sort_keys, self.sort_faces],
+            device=self.device,
+        )
+        wp.utils.radix_sort_pairs(self.sort_keys, self.sort_faces, n)
+        wp.launch(_invert_order, dim=n, inputs=[self.sort_faces], outputs=[self.face_leaf], device=self.device)
+        link_radix_tree(self.sort_keys, n, self.parent, self.left, self.right, self.first, self.prefix)
+
+    def refit(self, vertices: wp.array, faces: wp.array) -> None:
+        """Recompute every node's box (and winding moments) bottom-up from the current vertices."""
+        self.visits.zero_()
+        wp.launch(
+            _refit,
+            dim=self.face_count,
+            inputs=[vertices, faces, self.sort_faces, self.parent, self.left, self.right, self.internal_count,
+                    1 if self.with_moments else 0],
+            outputs=[self.lower, self.upper, self.tri_a, self.tri_b, self.tri_c, self.visits,
+                     self.area_normal, self.centre, self.area, self.radius],
+            device=self.device,
+        )
+
+    def view(self) -> BvhView:
+        v = BvhView()
+        v.internal_count = self.internal_count
+        v.lower, v.upper, v.left, v.right = self.lower, self.upper, self.left, self.right
+        v.tri_a, v.tri_b, v.tri_c = self.tri_a, self.tri_b, self.tri_c
+        v.leaf_face = self.sort_faces
+        v.face_leaf = self.face_leaf
+        v.leaf_key = self.sort_keys
+        v.area_normal, v.centre, v.area, v.radius = self.area_normal, self.centre, self.area, self.radius
+        return v
+
+    def leaf_faces(self) -> np.ndarray:
+        return self.sort_faces.numpy()[: self.face_count]
+
+
+def link_radix_tree(
+    keys: wp.array, count: int, parent: wp.array, left: wp.array, right: wp.array, first: wp.array, prefix: wp.array
+) -> None:
+    """Karras's parallel radix tree over `count` sorted, unique int64 keys.
+
+    Fills, for internal node i: children `left[i]`, `right[i]` (leaf k as count - 1 + k), the first key of its
+    range `first[i]` and its common-prefix length in code bits `prefix[i]`; and `parent` of every node
+    (-1 for the root).
+    """
+    parent.fill_(-1)
+    if count > 1:
+        wp.launch(
+            _link_radix_tree,
+            dim=count - 1,
+            inputs=[keys, count],
+            outputs=[parent, left, right, first, prefix],
+            device=keys.device,
+        )
+
+
+@wp.func
+def spatial_seed(bvh: BvhView, p: wp.vec3, origin: wp.vec3, inv_side: float) -> int:
+    """A leaf near p: the one whose Morton key is nearest p's own, found by binary search."""
+    resolution = 1 << BVH_CODE_LEVELS
+    cell = quantize(p, origin, float(resolution) * inv_side, resolution)
+    key = morton3(cell[0], cell[1], cell[2]) << wp.int64(_CODE_SHIFT)
+    lo = int(0)
+    hi = bvh.internal_count  # leaf count - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if bvh.leaf_key[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@wp.func
+def leaf_distance_sq(bvh: BvhView, leaf: int, p: wp.vec3) -> float:
+    return triangle_distance_sq(p, bvh.tri_a[leaf], bvh.tri_b[leaf], bvh.tri_c[leaf])
+
+
+@wp.func
+def nearest_leaf(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float):
+    """Nearest leaf to p among those strictly closer than sqrt(best_sq); (best_leaf, best_sq) if none.
+
+    The paper's Algorithm 2: depth-first, nearer child first, children that are leaves tested at once,
+    pruning every box no closer than the best so far. A good starting bound (coherence) prunes early.
+    """
+    n_internal = bvh.internal_count
+    if n_internal == 0:
+        d_sq = leaf_distance_sq(bvh, 0, p)
+        if d_sq < best_sq:
+            return 0, d_sq
+        return best_leaf, best_sq
+    nodes = stack_int()
+    bounds = stack_float()
+    nodes[0] = 0
+    bounds[0] = 0.0
+    count = int(1)
+    while count > 0:
+        count -= 1
+        if bounds[count] >= best_sq:
+            continue
+        node = nodes[count]
+        l = bvh.left[node]
+        r = bvh.right[node]
+        dl = box_distance_sq(p, bvh.lower[l], bvh.upper[l])
+        dr = box_distance_sq(p, bvh.lower[r], bvh.upper[r])
+        if l >= n_internal:
+            if dl < best_sq:
+                d_sq = leaf_distance_sq(bvh, l - n_internal, p)
+                if d_sq < best_sq:
+                    best_sq = d_sq
+                    best_leaf = l - n_internal
+            dl = 3.0e38
+        if r >= n_internal:
+            if dr < best_sq:
+                d_sq = leaf_distance_sq(bvh, r - n_internal, p)
+                if d_sq < best_sq:
+                    best_sq = d_sq
+                    best_leaf = r - n_internal
+            dr = 3.0e38
+        near = l
+        far = r
+        d_near = dl
+        d_far = dr
+        if dr < dl:
+            near = r
+            far = l
+            d_near = dr
+            d_far = dl
+        if d_far < best_sq:
+            nodes[count] = far
+            bounds[count] = d_far
+            count += 1
+        if d_near < best_sq:
+            nodes[count] = near
+            bounds[count] = d_near
+            count += 1
+    return best_leaf, best_sq
+
+
+@wp.func
+def winding_number(bvh: BvhView, p: wp.vec3) -> float:
+    """Generalised winding number of p: exact solid angles near p, node dipoles far away (Barill 2018)."""
+    n_internal = bvh.internal_count
+    if n_internal == 0:
+        return solid_angle(p, bvh.tri_a[0], bvh.tri_b[0], bvh.tri_c[0]) * _INV_FOUR_PI
+    nodes = stack_int()
+    nodes[0] = 0
+    count = int(1)
+    total = float(0.0)
+    while count > 0:
+        count -= 1
+        node = nodes[count]
+        if node >= n_internal:
+            leaf = node - n_internal
+            total += solid_angle(p, bvh.tri_a[leaf], bvh.tri_b[leaf], bvh.tri_c[leaf])
+        else:
+            offset = bvh.centre[node] - p
+            dist = wp.length(offset)
+            if dist > _FAR_FIELD * bvh.radius[node]:
+                total += wp.dot(bvh.area_normal[node], offset) / (dist * dist * dist)
+            else:
+                nodes[count] = bvh.left[node]
+                nodes[count + 1] = bvh.right[node]
+                count += 2
+    return total * _INV_FOUR_PI
+
+
+@wp.kernel(enable_backward=False)
+def _triangle_keys(
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    origin: wp.vec3,
+    inv_cell: float,
+    resolution: int,
+    keys: wp.array(dtype=wp.int64),
+    face_ids: wp.array(dtype=wp.int32),
+):
+    f = wp.tid()
+    tri = faces[f]
+    centroid = (vertices[tri[0]] + vertices[tri[1]] + vertices[tri[2]]) / 3.0
+    cell = quantize(centroid, origin, inv_cell, resolution)
+    keys[f] = (morton3(cell[0], cell[1], cell[2]) << wp.int64(_CODE_SHIFT)) | wp.int64(f)
+    face_ids[f] = f
+
+
+@wp.kernel(enable_backward=False)
+def _invert_order(leaf_face: wp.array(dtype=wp.int32), face_leaf: wp.array(dtype=wp.int32)):
+    k = wp.tid()
+    face_leaf[leaf_face[k]] = k
+
+
+@wp.func
+def _common_prefix(keys: wp.array(dtype=wp.int64), count: int, i: int, j: int) -> int:
+    if j < 0 or j >= count:
+        return -1
+    return clz64(keys[i] ^ keys[j])
+
+
+@wp.kernel(enable_backward=False)
+def _link_radix_tree(
+    keys: wp.array(dtype=wp.int64),
+    count: int,
+    parent: wp.array(dtype=wp.int32),
+    left: wp.array(dtype=wp.int32),
+    right: wp.array(dtype=wp.int32),
+    first: wp.array(dtype=wp.int32),
+    prefix: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    # direction of the node's range, and the prefix its range must exceed
+    d = int(1)
+    if _common_prefix(keys, count, i, i + 1) < _common_prefix(keys, count, i, i - 1):
+        d = -1
+    prefix_min = _common_prefix(keys, count, i, i - d)
+    length_max = int(2)
+    while _common_prefix(keys, count, i, i + length_max * d) > prefix_min:
+        length_max *= 2
+    length = int(0)
+    step = length_max // 2
+    while step >= 1:
+        if _common_prefix(keys, count, i, i + (length + step) * d) > prefix_min:
+            length += step
+        step = step // 2
+    j = i + length * d
+    node_prefix = _common_prefix(keys, count, i, j)
+    # binary search for the split: the last key sharing more than node_prefix bits with keys[i]
+    split = int(0)
+    divisor = int(2)
+    step = (length + divisor - 1) // divisor
+    while step >= 1:
+        if _common_prefix(keys, count, i, i + (split + step) * d) > node_prefix:
+            split += step
+        if step == 1:
+            break
+        divisor *= 2
+        step = (length + divisor - 1) // divisor
+    gamma = i + split * d + wp.min(d, 0)
+    lo = wp.min(i, j)
+    hi = wp.max(i, j)
+    leaf_base = count - 1
+    child_left = gamma
+    if lo == gamma:
+        child_left = leaf_base + gamma
+    child_right = gamma + 1
+    if hi == gamma + 1:
+        child_right = leaf_base + gamma + 1
+    left[i] = child_left
+    right[i] = child_right
+    parent[child_left] = i
+    parent[child_right] = i
+    first[i] = lo
+    prefix[i] = node_prefix - (64 - KEY_TOP_BIT)
+
+
+@wp.kernel(enable_backward=False)
+def _refit(
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    leaf_face: wp.array(dtype=wp.int32),
+    parent: wp.array(dtype=wp.int32),
+    left: wp.array(dtype=wp.int32),
+    right: wp.array(dtype=wp.int32),
+    internal_count: int,
+    with_moments: int,
+    lower: wp.array(dtype=wp.vec3),
+    upper: wp.array(dtype=wp.vec3),
+    tri_a: wp.array(dtype=wp.vec3),
+    tri_b: wp.array(dtype=wp.vec3),
+    tri_c: wp.array(dtype=wp.vec3),
+    visits: wp.array(dtype=wp.int32),
+    area_normal: wp.array(dtype=wp.vec3),
+    centre: wp.array(dtype=wp.vec3),
+    area: wp.array(dtype=wp.float32),
+    radius: wp.array(dtype=wp.float32),
+):
+    k = wp.tid()
+    tri = faces[leaf_face[k]]
+    a = vertices[tri[0]]
+    b = vertices[tri[1]]
+    c = vertices[tri[2]]
+    tri_a[k] = a
+    tri_b[k] = b
+    tri_c[k] = c
+    node = internal_count + k
+    lower[node] = wp.min(wp.min(a, b), c)
+    upper[node] = wp.max(wp.max(a, b), c)
+    if with_moments != 0:
+        n = 0.5 * wp.cross(b - a, c - a)
+        mid = (a + b + c) / 3.0
+        area_normal[node] = n
+        centre[node] = mid
+        area[node] = wp.length(n)
+        radius[node] = wp.max(wp.max(wp.length(a - mid), wp.length(b - mid)), wp.length(c - mid))
+    # Walk up; the second child to arrive at a node merges both (Karras 2012). Each writer fences before
+    # its arrival count, and the merger reads its children from L2, so no stale value is merged.
+    thread_fence()
+    node = parent[node]
+    while node >= 0:
+        if wp.atomic_add(visits, node, 1) == 0:
+            return
+        l = left[node]
+        r = right[node]
+        lower[node] = wp.min(load_coherent_vec3(lower, l), load_coherent_vec3(lower, r))
+        upper[node] = wp.max(load_coherent_vec3(upper, l), load_coherent_vec3(upper, r))
+        if with_moments != 0:
+            area_l = load_coherent_float(area, l)
+            area_r = load_coherent_float(area, r)
+            centre_l = load_coherent_vec3(centre, l)
+            centre_r = load_coherent_vec3(centre, r)
+            total = area_l + area_r
+            mid = 0.5 * (centre_l + centre_r)
+            if total > 0.0:
+                mid = (area_l * centre_l + area_r * centre_r) / total
+            area_normal[node] = load_coherent_vec3(area_normal, l) + load_coherent_vec3(area_normal, r)
+            centre[node] = mid
+            area[node] = total
+            radius[node] = wp.max(
+                wp.length(centre_l - mid) + load_coherent_float(radius, l),
+                wp.length(centre_r - mid) + load_coherent_float(radius, r),
+            )
+        thread_fence()
+        node = parent[node]

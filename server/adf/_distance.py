@@ -1,0 +1,345 @@
+"""Distance queries: one per unique octree corner (the field), and batches of user points (adf or exact).
+
+Every search starts with an upper bound from a face known to be near: for a corner, the face that was
+nearest to the same corner last frame (coherence, the paper's section 3.5) or, without one, the face
+whose Morton key is nearest the corner's; for an exact point query, the nearest of the faces recorded at
+the corners of the point's octree cell. Any face gives a valid bound, so the answer is exact either way;
+a tight bound only prunes more of the BVH.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from badf.server.adf._buffers import DeviceBuffers
+from badf.server.adf._bvh import BvhView, leaf_distance_sq, nearest_leaf, spatial_seed
+from badf.server.adf._geometry import closest_point_on_triangle, morton3, morton3_decode, quantize
+from badf.server.adf._octree import OctreeView, leaf_corner, locate
+from badf.server.adf._sign import SIGN_PSEUDONORMAL, SignView, feature_normal, is_inside
+
+# Output selection bits of a point query.
+OUT_DISTANCE = 1
+OUT_CLOSEST = 2
+OUT_NORMAL = 4
+OUT_FACE = 8
+OUTPUT_BITS = {"distance": OUT_DISTANCE, "closest_point": OUT_CLOSEST, "normal": OUT_NORMAL, "face": OUT_FACE}
+_OUT_DISTANCE = wp.constant(OUT_DISTANCE)
+_OUT_CLOSEST = wp.constant(OUT_CLOSEST)
+_OUT_NORMAL = wp.constant(OUT_NORMAL)
+_OUT_FACE = wp.constant(OUT_FACE)
+_PSEUDONORMAL = wp.constant(SIGN_PSEUDONORMAL)
+
+# Seeds for the corner searches.
+SEED_SPATIAL = 0
+SEED_COHERENT = 1
+
+
+class CornerField:
+    """Signed distance and nearest BVH leaf at each unique corner, and last frame's nearest faces.
+
+    Last frame's corners are kept by lattice key with the domain they were on, so coherence survives the
+    domain moving (a corner is matched to the nearest of last frame's lattice points) and the BVH being
+    rebuilt (faces, not leaves, are kept).
+    """
+
+    def __init__(self, buffers: DeviceBuffers):
+        self.buffers = buffers
+        self.device = buffers.device
+        self.count = 0
+        self.value: wp.array | None = None
+        self.leaf: wp.array | None = None
+        self.coherent = False  # whether the last compute started from last frame's faces
+        self._previous_count = 0
+        self._previous_keys = buffers.ensure("corner.prev_keys", 1, wp.int64)
+        self._previous_face = buffers.ensure("corner.prev_face", 1, wp.int32)
+        self._previous_centre: np.ndarray | None = None
+        self._previous_side = 0.0
+
+    def compute(self, corner_keys: wp.array, count: int, bvh: BvhView, sign: SignView, centre: np.ndarray,
+                side: float, depth: int, band: float | None, *, coherent: bool) -> None:
+        """Distances at the `count` corners (lattice keys) of the domain (centre, side), local coordinates."""
+        b = self.buffers
+        self.value = b.ensure("corner.value", count, wp.float32)
+        self.leaf = b.ensure("corner.leaf", count, wp.int32)
+        use_previous = coherent and self._previous_count > 0
+        cell = side / float(1 << depth)
+        previous_origin = wp.vec3(0.0, 0.0, 0.0)
+        previous_cell = cell
+        if use_previous:
+            shift = (self._previous_centre - centre - self._previous_side / 2.0).astype(np.float32)
+            previous_origin = wp.vec3(*shift)
+            previous_cell = self._previous_side / float(1 << depth)
+        half = side / 2.0
+        wp.launch(
+            _corner_distances,
+            dim=count,
+            inputs=[corner_keys, wp.vec3(-half, -half, -half), cell, 1.0 / side, depth, bvh, sign, band or 0.0,
+                    1 if use_previous else 0, self._previous_keys, self._previous_face, self._previous_count,
+                    previous_origin, 1.0 / previous_cell],
+            outputs=[self.value, self.leaf],
+            device=self.device,
+        )
+        self.count = count
+        self.coherent = use_previous
+        # keep this frame's corners and their nearest faces for the next one
+        self._previous_keys = b.ensure("corner.prev_keys", count, wp.int64)
+        self._previous_face = b.ensure("corner.prev_face", count, wp.int32)
+        wp.copy(self._previous_keys, corner_keys, count=count)
+        wp.launch(_leaf_faces, dim=count, inputs=[self.leaf, bvh], outputs=[self._previous_face], device=self.device)
+        self._previous_count = count
+        self._previous_centre = np.asarray(centre, dtype=np.float64).copy()
+        self._previous_side = side
+
+
+class PointQuery:
+    """Device buffers for batches of query points, reused from batch to batch."""
+
+    def __init__(self, buffers: DeviceBuffers):
+        self.buffers = buffers
+        self.device = buffers.device
+
+    def run(self, local_points: np.ndarray, *, exact: bool, outputs: int, octree: OctreeView, corner_value: wp.array,
+            corner_leaf: wp.array, bvh: BvhView, sign: SignView, side: float, band: float | None,
+            results: dict[str, np.ndarray], start: int) -> None:
+        """Answer one batch (float32 local coordinates); copy the asked outputs into results[...][start:]."""
+        b = self.buffers
+        n = len(local_points)
+        points = b.ensure("query.points", n, wp.vec3)
+        distance = b.ensure("query.distance", n if outputs & OUT_DISTANCE else 1, wp.float32)
+        closest = b.ensure("query.closest", n if outputs & OUT_CLOSEST else 1, wp.vec3)
+        normal = b.ensure("query.normal", n if outputs & OUT_NORMAL else 1, wp.vec3)
+        face = b.ensure("query.face", n if outputs & OUT_FACE else 1, wp.int32)
+        wp.copy(points, wp.array(local_points, dtype=wp.vec3, device="cpu", copy=False), count=n)
+        wp.launch(
+            _query_points,
+            dim=n,
+            inputs=[points, 1 if exact else 0, outputs, octree, corner_value, corner_leaf, bvh, sign, 1.0 / side,
+                    band or 0.0],
+            outputs=[distance, closest, normal, face],
+            device=self.device,
+        )
+        for name, bit, arr, dtype in (
+            ("distance", OUT_DISTANCE, distance, wp.float32),
+            ("closest_point", OUT_CLOSEST, closest, wp.vec3),
+            ("normal", OUT_NORMAL, normal, wp.vec3),
+            ("face", OUT_FACE, face, wp.int32),
+        ):
+            if outputs & bit:
+                host = wp.array(results[name][start : start + n], dtype=dtype, device="cpu", copy=False)
+                wp.copy(host, arr, count=n)
+        wp.synchronize_device(self.device)
+
+
+@wp.func
+def _nearest_with_band(bvh: BvhView, p: wp.vec3, seed: int, band: float):
+    """Exact nearest leaf from a seed leaf; leaf -1 when nothing lies within `band` (> 0)."""
+    best_sq = leaf_distance_sq(bvh, seed, p)
+    best = seed
+    if band > 0.0 and band * band < best_sq:
+        best = -1
+        best_sq = band * band
+    return nearest_leaf(bvh, p, best, best_sq)
+
+
+@wp.func
+def _search_sorted(keys: wp.array(dtype=wp.int64), count: int, key: wp.int64) -> int:
+    lo = int(0)
+    hi = count
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@wp.kernel(enable_backward=False)
+def _leaf_faces(leaf: wp.array(dtype=wp.int32), bvh: BvhView, face: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    face[i] = bvh.leaf_face[leaf[i]]
+
+
+@wp.kernel(enable_backward=False)
+def _corner_distances(
+    corner_keys: wp.array(dtype=wp.int64),
+    origin: wp.vec3,
+    cell: float,
+    inv_side: float,
+    depth: int,
+    bvh: BvhView,
+    sign: SignView,
+    band: float,
+    coherent: int,
+    previous_keys: wp.array(dtype=wp.int64),
+    previous_face: wp.array(dtype=wp.int32),
+    previous_count: int,
+    previous_origin: wp.vec3,
+    previous_inv_cell: float,
+    value: wp.array(dtype=wp.float32),
+    nearest: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    key = corner_keys[i]
+    lattice = morton3_decode(key)
+    p = origin + wp.vec3(float(lattice[0]), float(lattice[1]), float(lattice[2])) * cell
+    seed = int(-1)
+    if coherent != 0:
+        # last frame's nearest lattice point (the same one while the domain stays), or its neighbour in
+        # Morton order: its nearest face bounds this search either way
+        q = (p - previous_origin) * previous_inv_cell
+        top = 1 << depth
+        previous_key = morton3(
+            wp.clamp(int(wp.round(q[0])), 0, top), wp.clamp(int(wp.round(q[1])), 0, top),
+            wp.clamp(int(wp.round(q[2])), 0, top),
+        )
+        slot = wp.min(_search_sorted(previous_keys, previous_count, previous_key), previous_count - 1)
+        seed = bvh.face_leaf[previous_face[slot]]
+    else:
+        seed = spatial_seed(bvh, p, origin, inv_side)
+    leaf, best_sq = _nearest_with_band(bvh, p, seed, band)
+    if leaf < 0:
+        inside = is_inside(sign, bvh, p, -1, p, 0)
+        value[i] = wp.where(inside, -band, band)
+        nearest[i] = seed
+        return
+    closest, feature = closest_point_on_triangle(p, bvh.tri_a[leaf], bvh.tri_b[leaf], bvh.tri_c[leaf])
+    d = wp.sqrt(best_sq)
+    if is_inside(sign, bvh, p, bvh.leaf_face[leaf], closest, feature):
+        d = -d
+    value[i] = d
+    nearest[i] = leaf
+
+
+@wp.func
+def _face_normal(bvh: BvhView, leaf: int) -> wp.vec3:
+    n = wp.cross(bvh.tri_b[leaf] - bvh.tri_a[leaf], bvh.tri_c[leaf] - bvh.tri_a[leaf])
+    length = wp.length(n)
+    if length > 0.0:
+        return n / length
+    return wp.vec3(0.0)
+
+
+@wp.kernel(enable_backward=False)
+def _query_points(
+    points: wp.array(dtype=wp.vec3),
+    exact: int,
+    outputs: int,
+    tree: OctreeView,
+    corner_value: wp.array(dtype=wp.float32),
+    corner_leaf: wp.array(dtype=wp.int32),
+    bvh: BvhView,
+    sign: SignView,
+    inv_side: float,
+    band: float,
+    out_distance: wp.array(dtype=wp.float32),
+    out_closest: wp.array(dtype=wp.vec3),
+    out_normal: wp.array(dtype=wp.vec3),
+    out_face: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    p = points[i]
+    resolution = 1 << tree.depth
+    g = (p - tree.origin) / tree.cell
+    top = float(resolution)
+    in_domain = g[0] >= 0.0 and g[1] >= 0.0 and g[2] >= 0.0 and g[0] <= top and g[1] <= top and g[2] <= top
+
+    seed = int(-1)
+    if in_domain:
+        cell = quantize(p, tree.origin, 1.0 / tree.cell, resolution)
+        node, octant, level = locate(tree, cell)
+        scale = 1 << (tree.depth - level)
+        base = wp.vec3(
+            float((cell[0] // scale) * scale), float((cell[1] // scale) * scale), float((cell[2] // scale) * scale)
+        )
+        t = (g - base) / float(scale)
+        t = wp.vec3(wp.clamp(t[0], 0.0, 1.0), wp.clamp(t[1], 0.0, 1.0), wp.clamp(t[2], 0.0, 1.0))
+        if exact == 0:
+            # trilinear interpolation of the leaf's corners, its gradient, and the corner nearest p
+            value = float(0.0)
+            grad = wp.vec3(0.0)
+            heaviest = float(-1.0)
+            nearest_corner = int(0)
+            for corner in range(8):
+                cx = float((corner >> 2) & 1)
+                cy = float((corner >> 1) & 1)
+                cz = float(corner & 1)
+                wx = cx * t[0] + (1.0 - cx) * (1.0 - t[0])
+                wy = cy * t[1] + (1.0 - cy) * (1.0 - t[1])
+                wz = cz * t[2] + (1.0 - cz) * (1.0 - t[2])
+                slot = leaf_corner(tree, node, octant, corner)
+                v = corner_value[slot]
+                weight = wx * wy * wz
+                value += weight * v
+                grad += v * wp.vec3((2.0 * cx - 1.0) * wy * wz, (2.0 * cy - 1.0) * wx * wz, (2.0 * cz - 1.0) * wx * wy)
+                if weight > heaviest:
+                    heaviest = weight
+                    nearest_corner = slot
+            grad = grad / (float(scale) * tree.cell)
+            length = wp.length(grad)
+            unit = wp.vec3(0.0)
+            if length > 0.0:
+                unit = grad / length
+            if outputs & _OUT_DISTANCE:
+                out_distance[i] = value
+            if outputs & _OUT_NORMAL:
+                out_normal[i] = unit
+            if outputs & _OUT_CLOSEST:
+                out_closest[i] = p - value * unit
+            if outputs & _OUT_FACE:
+                face = bvh.leaf_face[corner_leaf[nearest_corner]]
+                if band > 0.0 and wp.abs(value) >= band:
+                    face = -1
+                out_face[i] = face
+            return
+        # exact: start from the nearest of the faces recorded at the cell's corners
+        best_sq = float(3.0e38)
+        for corner in range(8):
+            leaf = corner_leaf[leaf_corner(tree, node, octant, corner)]
+            d_sq = leaf_distance_sq(bvh, leaf, p)
+            if d_sq < best_sq:
+                best_sq = d_sq
+                seed = leaf
+    else:
+        seed = spatial_seed(bvh, p, tree.origin, inv_side)
+
+    leaf, best_sq = _nearest_with_band(bvh, p, seed, band)
+    if leaf < 0:
+        inside = False
+        if in_domain:
+            inside = is_inside(sign, bvh, p, -1, p, 0)
+        if outputs & _OUT_DISTANCE:
+            out_distance[i] = wp.where(inside, -band, band)
+        if outputs & _OUT_NORMAL:
+            out_normal[i] = wp.vec3(0.0)
+        if outputs & _OUT_CLOSEST:
+            out_closest[i] = wp.vec3(0.0)
+        if outputs & _OUT_FACE:
+            out_face[i] = -1
+        return
+    closest, feature = closest_point_on_triangle(p, bvh.tri_a[leaf], bvh.tri_b[leaf], bvh.tri_c[leaf])
+    face = bvh.leaf_face[leaf]
+    offset = p - closest
+    d = wp.sqrt(best_sq)
+    inside = False
+    if in_domain:
+        inside = is_inside(sign, bvh, p, face, closest, feature)
+    if outputs & _OUT_DISTANCE:
+        out_distance[i] = wp.where(inside, -d, d)
+    if outputs & _OUT_NORMAL:
+        # gradient of the signed distance: away from the surface outside, towards it (outward) inside
+        n = wp.vec3(0.0)
+        if d > 0.0:
+            n = offset / d
+            if inside:
+                n = -n
+        elif sign.method == _PSEUDONORMAL:
+            n = feature_normal(sign, face, feature)
+        else:
+            n = _face_normal(bvh, leaf)
+        out_normal[i] = n
+    if outputs & _OUT_CLOSEST:
+        out_closest[i] = closest
+    if outputs & _OUT_FACE:
+        out_face[i] = face

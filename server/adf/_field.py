@@ -1,0 +1,377 @@
+"""DistanceField: one triangle mesh and its adaptive distance field on one device."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import warp as wp
+
+from badf.server.adf._buffers import DeviceBuffers
+from badf.server.adf._bvh import Bvh
+from badf.server.adf._clock import StageClock
+from badf.server.adf._distance import OUTPUT_BITS, CornerField, PointQuery
+from badf.server.adf._inputs import (
+    QUERY_MODES,
+    REFINEMENTS,
+    InvalidInputError,
+    as_faces,
+    as_points,
+    as_vertices,
+    check_band,
+    check_choice,
+    check_depth,
+    check_flag,
+    check_halo,
+    check_outputs,
+)
+from badf.server.adf._octree import Octree
+from badf.server.adf._sign import (
+    SIGN_METHODS,
+    Pseudonormals,
+    analyse_topology,
+    enclosed_volume,
+    encloses_volume,
+    resolve_sign,
+)
+from badf.server.adf._tolerances import DOMAIN_MARGIN, QUERY_CHUNK, REDOMAIN_MIN_FILL
+
+QueryMode = Literal["adf", "exact"]
+QueryOutput = Literal["distance", "closest_point", "normal", "face"]
+
+
+@dataclass
+class QueryResult:
+    """Answers for P points; only the outputs asked for are filled, the others are None.
+
+    distance: (P,) float32 signed distance, negative inside (unsigned when the sign is "none"); clamped to
+        +-band when a band is set.
+    closest_point: (P, 3) float32 nearest surface point (adf mode: p - distance * normal).
+    normal: (P, 3) float32 unit gradient of the field; zero where it is flat (beyond the band).
+    face: (P,) int32 index of the nearest face; -1 beyond the band (adf mode: the face nearest the
+        cell corner closest to p).
+    frame: the frame the answers are for.
+    """
+
+    distance: np.ndarray | None = None
+    closest_point: np.ndarray | None = None
+    normal: np.ndarray | None = None
+    face: np.ndarray | None = None
+    frame: int = 0
+
+
+@dataclass(frozen=True)
+class _Domain:
+    """The cube the octree covers: centre (float64, exactly representable in float32) and side length."""
+
+    centre: np.ndarray
+    side: float
+
+    @staticmethod
+    def fit(lo: np.ndarray, hi: np.ndarray, previous: _Domain | None = None) -> _Domain:
+        extent = float(np.max(hi - lo))
+        centre = ((lo.astype(np.float64) + hi.astype(np.float64)) / 2.0).astype(np.float32).astype(np.float64)
+        if extent > 0.0:
+            side = extent * (1.0 + 2.0 * DOMAIN_MARGIN)
+        elif previous is not None:
+            side = previous.side
+        else:
+            raise InvalidInputError("vertices must not all coincide: the mesh has zero extent")
+        # the centre's float32 rounding must not push the mesh out of the cube
+        side += 2.0 * float(np.max(np.abs(centre - (lo + hi) / 2.0)))
+        return _Domain(centre, side)
+
+    def holds(self, lo: np.ndarray, hi: np.ndarray) -> bool:
+        half = self.side / 2.0
+        inside = bool(np.all(lo >= self.centre - half) and np.all(hi <= self.centre + half))
+        return inside and float(np.max(hi - lo)) >= REDOMAIN_MIN_FILL * self.side
+
+    def to_local(self, points: np.ndarray) -> np.ndarray:
+        return np.ascontiguousarray(points - self.centre.astype(points.dtype), dtype=np.float32)
+
+    @property
+    def origin(self) -> wp.vec3:
+        half = self.side / 2.0
+        return wp.vec3(-half, -half, -half)
+
+
+@dataclass
+class _Counters:
+    updates: int = 0
+    domain_moves: int = 0
+    queries: int = 0
+    query_points: int = 0
+    last_query_ms: float = 0.0
+    last_update_wall_ms: float = 0.0
+
+
+class DistanceField:
+    """Adaptive signed distance field of a triangle mesh, rebuilt frame by frame on one device.
+
+    Args:
+        vertices: (N, 3) vertex positions, any float or int dtype; finite.
+        faces: (M, 3) integer vertex indices, M >= 1.
+        depth: finest octree level, 1..10 (2**depth cells per axis of the domain cube at the finest level).
+        sign: "pseudonormal" (angle-weighted, needs a closed mesh), "winding" (generalised winding number,
+            any mesh), "none" (unsigned, e.g. cloth), or "auto" (pseudonormal for a closed mesh that encloses
+            volume, else winding). Negative inside.
+        band: if set, distances beyond it are clamped to +-band and the searches stop at it.
+        coherence: start each frame's corner searches from last frame's nearest faces.
+        refine: "surface" refines every finest cell the surface crosses; "centroid" only the cells holding a
+            triangle's centroid (the paper's rule, with halo=0).
+        halo: finest cells of refinement added around those, 0..2. With 1 (the default) every point within
+            one finest cell of the surface is interpolated in a finest cell of exact corners.
+        device: "cpu", "cuda", "cuda:N", or None for the first GPU if there is one, else the CPU.
+
+    Raises:
+        InvalidInputError: on bad input; nothing is kept from the failed call.
+    """
+
+    def __init__(
+        self,
+        vertices,
+        faces,
+        *,
+        depth: int = 7,
+        sign: Literal["auto", "pseudonormal", "winding", "none"] = "auto",
+        band: float | None = None,
+        coherence: bool = True,
+        refine: Literal["surface", "centroid"] = "surface",
+        halo: int = 1,
+        device: str | None = None,
+    ):
+        v = as_vertices(vertices)
+        f = as_faces(faces, len(v))
+        self._depth = check_depth(depth)
+        self._sign_requested = check_choice(sign, "sign", SIGN_METHODS)
+        self._band = check_band(band)
+        self._coherence = check_flag(coherence, "coherence")
+        self._refine = check_choice(refine, "refine", REFINEMENTS)
+        self._halo = check_halo(halo)
+        self._device = _resolve_device(device)
+
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        self._domain = _Domain.fit(lo, hi)
+        local = self._domain.to_local(v)
+        self._topology = analyse_topology(f, v)
+        volume, area = enclosed_volume(local, f)
+        solid = self._topology.closed and encloses_volume(volume, area, float(np.max(hi - lo)))
+        self._flipped = bool(solid and volume < 0.0)
+        if self._flipped:
+            f = np.ascontiguousarray(f[:, [0, 2, 1]])
+        self._sign = resolve_sign(self._sign_requested, self._topology, solid)
+        self._vertex_count, self._face_count = len(v), len(f)
+        self._frame = 0
+        self._counters = _Counters()
+
+        self._buffers = DeviceBuffers(self._device)
+        b = self._buffers
+        self._vertices = b.array("mesh.vertices", len(v), wp.vec3)
+        self._faces = b.array("mesh.faces", len(f), wp.vec3i)
+        self._faces.assign(f)
+        self._clock = StageClock(self._device)
+        self._bvh = Bvh(len(f), with_moments=self._sign != "none", buffers=b)
+        self._octree = Octree(self._depth, self._refine, self._halo, b)
+        self._normals = Pseudonormals(self._sign, self._topology, self._faces, b)
+        self._corners = CornerField(b)
+        self._points = PointQuery(b)
+        self._apply(local, domain_moved=True)
+
+    # -- public API -----------------------------------------------------------------------------------
+    def update(self, vertices) -> int:
+        """Replace the vertex positions (same count and topology) and rebuild the field; returns the frame.
+
+        Raises InvalidInputError (and keeps the last good frame) on a wrong shape or non-finite value.
+        """
+        v = as_vertices(vertices, expected_count=self._vertex_count)
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        moved = not self._domain.holds(lo, hi)
+        if moved:
+            self._domain = _Domain.fit(lo, hi, previous=self._domain)
+            self._counters.domain_moves += 1
+        self._apply(self._domain.to_local(v), domain_moved=moved)
+        self._frame += 1
+        self._counters.updates += 1
+        return self._frame
+
+    def query(
+        self,
+        points,
+        *,
+        mode: QueryMode = "adf",
+        outputs: tuple[QueryOutput, ...] | list[QueryOutput] = ("distance",),
+    ) -> QueryResult:
+        """Distances (and what else `outputs` names) at (P, 3) points, for the current frame.
+
+        mode "adf" interpolates the octree's corners trilinearly (exact outside the domain); "exact" runs a
+        BVH closest-point search bounded by the faces recorded at the point's cell corners. Batches larger
+        than QUERY_CHUNK points are processed in chunks, so device memory stays bounded.
+        """
+        mode = check_choice(mode, "mode", QUERY_MODES)
+        names = check_outputs(outputs)
+        p = as_points(points)
+        start_time = time.perf_counter()
+        count = len(p)
+        result = QueryResult(frame=self._frame)
+        shapes = {"distance": ((count,), np.float32), "closest_point": ((count, 3), np.float32),
+                  "normal": ((count, 3), np.float32), "face": ((count,), np.int32)}
+        arrays = {name: np.empty(*shapes[name]) for name in names}
+        bits = 0
+        for name in names:
+            bits |= OUTPUT_BITS[name]
+        tree = self._octree.view(self._domain.origin, self._domain.side)
+        bvh, sign = self._bvh.view(), self._normals.view()
+        for start in range(0, count, QUERY_CHUNK):
+            local = self._domain.to_local(p[start : start + QUERY_CHUNK])
+            self._points.run(local, exact=mode == "exact", outputs=bits, octree=tree,
+                             corner_value=self._corners.value, corner_leaf=self._corners.leaf, bvh=bvh, sign=sign,
+                             side=self._domain.side, band=self._band, results=arrays, start=start)
+        if "closest_point" in arrays:
+            closest = arrays["closest_point"]
+            closest += self._domain.centre.astype(np.float32)
+            if self._band is not None and "face" in arrays:
+                closest[arrays["face"] < 0] = 0.0
+        for name, arr in arrays.items():
+            setattr(result, name, arr)
+        self._counters.queries += 1
+        self._counters.query_points += count
+        self._counters.last_query_ms = (time.perf_counter() - start_time) * 1e3
+        return result
+
+    @property
+    def frame(self) -> int:
+        return self._frame
+
+    @property
+    def vertex_count(self) -> int:
+        return self._vertex_count
+
+    @property
+    def face_count(self) -> int:
+        return self._face_count
+
+    @property
+    def device(self) -> str:
+        return str(self._device)
+
+    def info(self) -> dict:
+        """Resolved options and facts about the mesh (JSON-serialisable)."""
+        return {
+            "vertices": self._vertex_count,
+            "faces": self._face_count,
+            "device": self.device,
+            "depth": self._depth,
+            "sign": self._sign,
+            "sign_requested": self._sign_requested,
+            "band": self._band,
+            "coherence": self._coherence,
+            "refine": self._refine,
+            "halo": self._halo,
+            "orientation_flipped": self._flipped,
+            "topology": self._topology.summary(),
+            "domain": {"centre": self._domain.centre.tolist(), "side": self._domain.side,
+                       "finest_cell": self._domain.side / (1 << self._depth)},
+            "frame": self._frame,
+        }
+
+    def stats(self) -> dict:
+        """Counts, per-stage times (ms) of the last build or update, and device bytes (JSON-serialisable)."""
+        o = self._octree
+        internal = o.internal_count
+        leaves = 8 * internal - (o.node_count - 1) + int(o.level_counts[-1])
+        c = self._counters
+        return {
+            "frame": self._frame,
+            "device": self.device,
+            "counts": {
+                "vertices": self._vertex_count,
+                "faces": self._face_count,
+                "surface_cells": o.surface_cell_count,
+                "octree_nodes": o.node_count,
+                "nodes_per_level": [int(x) for x in o.level_counts],
+                "internal_nodes": internal,
+                "leaves": leaves,
+                "corner_candidates": 8 * leaves,
+                "unique_corners": o.corner_count,
+                "coherent_frame": self._corners.coherent,
+            },
+            "times_ms": self._clock.times_ms(),
+            "update_wall_ms": round(c.last_update_wall_ms, 4),
+            "last_query_ms": round(c.last_query_ms, 4),
+            "updates": c.updates,
+            "domain_moves": c.domain_moves,
+            "queries": c.queries,
+            "query_points": c.query_points,
+            "device_bytes": self._buffers.nbytes(),
+        }
+
+    # -- the pipeline ---------------------------------------------------------------------------------
+    def _apply(self, local_vertices: np.ndarray, *, domain_moved: bool) -> None:
+        """Upload a frame and rebuild the field: refit (or rebuild, when the domain moved), sign data,
+        octree, corners, corner distances."""
+        wall = time.perf_counter()
+        clock = self._clock
+        clock.reset()
+        origin, side = self._domain.origin, self._domain.side
+        with wp.ScopedDevice(self._device), clock.stage("total"):
+            with clock.stage("upload"):
+                wp.copy(self._vertices, wp.array(local_vertices, dtype=wp.vec3, device="cpu", copy=False))
+            if domain_moved:
+                with clock.stage("bvh_build"):
+                    self._bvh.build(self._vertices, self._faces, origin, side)
+            with clock.stage("refit"):
+                self._bvh.refit(self._vertices, self._faces)
+            with clock.stage("normals"):
+                self._normals.update(self._vertices)
+            self._octree.build(self._vertices, self._faces, self._face_count, origin, side, clock)
+            with clock.stage("distances"):
+                self._corners.compute(self._octree.corner_keys, self._octree.corner_count, self._bvh.view(),
+                                      self._normals.view(), self._domain.centre, side, self._depth, self._band,
+                                      coherent=self._coherence)
+        self._counters.last_update_wall_ms = (time.perf_counter() - wall) * 1e3
+
+    # -- for tests and tools --------------------------------------------------------------------------
+    def corner_samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(positions (C, 3) float64 in world coordinates, signed distances (C,), nearest faces (C,))."""
+        keys = self._octree.corner_keys.numpy()[: self._octree.corner_count]
+        lattice = _decode_morton(keys)
+        cell = self._domain.side / (1 << self._depth)
+        positions = self._domain.centre + (-self._domain.side / 2.0 + lattice * cell)
+        n = self._octree.corner_count
+        values = self._corners.value.numpy()[:n]
+        faces = self._bvh.leaf_faces()[self._corners.leaf.numpy()[:n]]
+        return positions, values, faces
+
+    def octree_cells(self) -> tuple[np.ndarray, np.ndarray]:
+        """(levels (K,), integer cell coordinates (K, 3) at each node's level) of every octree node."""
+        keys = self._octree.node_keys.numpy()[: self._octree.node_count]
+        levels = (keys >> 32).astype(np.int64)
+        return levels, _decode_morton(keys & 0xFFFFFFFF).astype(np.int64)
+
+
+def _decode_morton(codes: np.ndarray) -> np.ndarray:
+    codes = codes.astype(np.int64)
+    out = np.zeros((len(codes), 3), dtype=np.float64)
+    for bit in range(21):
+        for axis in range(3):
+            out[:, axis] += ((codes >> (3 * bit + 2 - axis)) & 1) * (1 << bit)
+    return out
+
+
+def _resolve_device(device) -> wp.Device:
+    wp.init()
+    if device is None:
+        return wp.get_device("cuda:0" if wp.get_cuda_device_count() > 0 else "cpu")
+    if isinstance(device, wp.Device):
+        return device
+    if not isinstance(device, str):
+        raise InvalidInputError(f"device must be 'cpu', 'cuda' or 'cuda:N' (or None), got {device!r}")
+    try:
+        resolved = wp.get_device(device)
+    except (RuntimeError, ValueError, KeyError) as error:
+        raise InvalidInputError(f"device {device!r} is not available here: {error}") from None
+    if resolved is None:
+        raise InvalidInputError(f"device {device!r} is not available here")
+    return resolved

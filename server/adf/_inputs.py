@@ -1,0 +1,144 @@
+"""Checks at the engine's boundary: each says what was expected and what came, before any state changes."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+
+from badf.server.adf._tolerances import MAX_DEPTH, MAX_FACES, MAX_HALO, MAX_VERTICES
+
+# Coordinates beyond this magnitude would overflow float32 when squared inside the distance kernels.
+MAX_COORDINATE = 1.0e18
+
+QUERY_MODES: tuple[str, ...] = ("adf", "exact")
+QUERY_OUTPUTS: tuple[str, ...] = ("distance", "closest_point", "normal", "face")
+REFINEMENTS: tuple[str, ...] = ("surface", "centroid")
+
+
+class InvalidInputError(ValueError):
+    """Input the engine cannot use; the message says what was expected and what came."""
+
+
+def _numeric_array(value, name: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError) as error:
+        raise InvalidInputError(f"{name} must be an array of numbers: {error}") from None
+    if arr.dtype.kind not in "fiu":
+        raise InvalidInputError(f"{name} must hold numbers (float or int), got dtype {arr.dtype}")
+    return arr
+
+
+def _check_finite(arr: np.ndarray, name: str) -> None:
+    if arr.dtype.kind != "f":
+        return
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        rows = np.flatnonzero(bad.any(axis=-1))
+        raise InvalidInputError(
+            f"{name} must be finite, got {int(bad.sum())} NaN or Inf values in {len(rows)} rows (first at row {rows[0]})"
+        )
+    if arr.size:
+        big = float(np.abs(arr).max())
+        if big > MAX_COORDINATE:
+            raise InvalidInputError(f"{name} must lie within +-{MAX_COORDINATE:g}, got a coordinate of {big:g}")
+
+
+def as_points(value, name: str = "points", *, expected_count: int | None = None, allow_empty: bool = True) -> np.ndarray:
+    """A (P, 3) float array of finite coordinates (float64 stays float64 for exact recentring; ints become float64)."""
+    arr = _numeric_array(value, name)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InvalidInputError(f"{name} must have shape (count, 3), got {arr.shape}")
+    if expected_count is not None and arr.shape[0] != expected_count:
+        raise InvalidInputError(
+            f"{name} must have {expected_count} rows (the registered vertex count), got {arr.shape[0]}"
+        )
+    if not allow_empty and arr.shape[0] == 0:
+        raise InvalidInputError(f"{name} must not be empty")
+    if arr.dtype.kind != "f" or arr.dtype.itemsize > 8:
+        arr = arr.astype(np.float64)
+    elif arr.dtype.itemsize < 4:
+        arr = arr.astype(np.float32)
+    _check_finite(arr, name)
+    return np.ascontiguousarray(arr)
+
+
+def as_vertices(value, *, expected_count: int | None = None) -> np.ndarray:
+    arr = as_points(value, "vertices", expected_count=expected_count, allow_empty=False)
+    if arr.shape[0] > MAX_VERTICES:
+        raise InvalidInputError(f"vertices: at most {MAX_VERTICES} supported, got {arr.shape[0]}")
+    return arr
+
+
+def as_faces(value, vertex_count: int) -> np.ndarray:
+    """A (M, 3) int32 array of vertex indices in [0, vertex_count)."""
+    arr = _numeric_array(value, "faces")
+    if arr.dtype.kind not in "iu":
+        raise InvalidInputError(f"faces must hold integer vertex indices, got dtype {arr.dtype}")
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InvalidInputError(f"faces must have shape (count, 3), got {arr.shape}")
+    if arr.shape[0] == 0:
+        raise InvalidInputError("faces must not be empty: a distance field needs at least one triangle")
+    if arr.shape[0] > MAX_FACES:
+        raise InvalidInputError(f"faces: at most {MAX_FACES} supported, got {arr.shape[0]}")
+    lo, hi = int(arr.min()), int(arr.max())
+    if lo < 0 or hi >= vertex_count:
+        bad = np.flatnonzero(((arr < 0) | (arr >= vertex_count)).any(axis=1))
+        raise InvalidInputError(
+            f"faces must index vertices 0..{vertex_count - 1}, got indices in [{lo}, {hi}] "
+            f"({len(bad)} faces out of range, first at row {bad[0]})"
+        )
+    return np.ascontiguousarray(arr, dtype=np.int32)
+
+
+def check_depth(depth) -> int:
+    if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)):
+        raise InvalidInputError(f"depth must be an integer in 1..{MAX_DEPTH}, got {depth!r}")
+    if not 1 <= int(depth) <= MAX_DEPTH:
+        raise InvalidInputError(f"depth must be in 1..{MAX_DEPTH}, got {depth}")
+    return int(depth)
+
+
+def check_halo(halo) -> int:
+    if isinstance(halo, bool) or not isinstance(halo, (int, np.integer)) or not 0 <= int(halo) <= MAX_HALO:
+        raise InvalidInputError(f"halo must be an integer in 0..{MAX_HALO}, got {halo!r}")
+    return int(halo)
+
+
+def check_band(band) -> float | None:
+    if band is None:
+        return None
+    try:
+        value = float(band)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"band must be a positive number or None, got {band!r}") from None
+    if not np.isfinite(value) or value <= 0.0:
+        raise InvalidInputError(f"band must be a positive finite number or None, got {band!r}")
+    return value
+
+
+def check_choice(value, name: str, choices: tuple[str, ...]) -> str:
+    if not isinstance(value, str) or value not in choices:
+        raise InvalidInputError(f"{name} must be one of {', '.join(choices)}; got {value!r}")
+    return value
+
+
+def check_outputs(outputs) -> tuple[str, ...]:
+    if isinstance(outputs, str):
+        outputs = (outputs,)
+    if not isinstance(outputs, Iterable):
+        raise InvalidInputError(f"outputs must be a sequence of names from {QUERY_OUTPUTS}, got {outputs!r}")
+    names = tuple(outputs)
+    if not names:
+        raise InvalidInputError(f"outputs must name at least one of {', '.join(QUERY_OUTPUTS)}")
+    unknown = [name for name in names if name not in QUERY_OUTPUTS]
+    if unknown:
+        raise InvalidInputError(f"unknown outputs {unknown}; expected names from {', '.join(QUERY_OUTPUTS)}")
+    return tuple(dict.fromkeys(names))
+
+
+def check_flag(value, name: str) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise InvalidInputError(f"{name} must be True or False, got {value!r}")
+    return bool(value)

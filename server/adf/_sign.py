@@ -1,0 +1,292 @@
+"""Inside or outside: angle-weighted pseudonormals (Baerentzen and Aanaes 2005) or winding numbers.
+
+`analyse_topology` reads the connectivity once per object, on the host: the edge table, which edges are
+open, non-manifold or inconsistently oriented, and the adjacency the pseudonormal kernels gather over
+(gathering, not scattering with atomics, keeps the normals bit-for-bit repeatable).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import warp as wp
+
+from badf.server.adf._buffers import DeviceBuffers
+from badf.server.adf._bvh import BvhView, winding_number
+from badf.server.adf._geometry import EDGE_AB, EDGE_BC, FACE, VERTEX_A, VERTEX_B, VERTEX_C
+from badf.server.adf._tolerances import DEGENERATE_AREA, MIN_ENCLOSED_VOLUME
+
+SignMethod = Literal["auto", "pseudonormal", "winding", "none"]
+SIGN_METHODS: tuple[str, ...] = ("auto", "pseudonormal", "winding", "none")
+
+# Codes of the resolved method, as the kernels see it.
+SIGN_NONE = 0
+SIGN_PSEUDONORMAL = 1
+SIGN_WINDING = 2
+_SIGN_CODES = {"none": SIGN_NONE, "pseudonormal": SIGN_PSEUDONORMAL, "winding": SIGN_WINDING}
+_PSEUDONORMAL = wp.constant(SIGN_PSEUDONORMAL)
+_WINDING = wp.constant(SIGN_WINDING)
+_DEGENERATE = wp.constant(DEGENERATE_AREA)
+
+
+@dataclass(frozen=True)
+class Topology:
+    """Connectivity of a triangle mesh whose vertices at identical positions are welded into one.
+
+    Seams (vertices duplicated for texture coordinates) would otherwise look like open boundaries.
+    """
+
+    welded_faces: np.ndarray  # (M, 3) int32: faces over welded vertex ids
+    welded_count: int  # distinct vertex positions
+    face_edge: np.ndarray  # (M, 3) int32: edge id of edges ab, bc, ca; faces with a repeated vertex get the null edge
+    edge_count: int  # edges, plus one null edge (id edge_count) with no faces
+    edge_face_start: np.ndarray  # (edge_count + 2,) CSR into edge_face
+    edge_face: np.ndarray  # faces around each edge
+    vertex_corner_start: np.ndarray  # (welded_count + 1,) CSR into vertex_corner
+    vertex_corner: np.ndarray  # 3 * face + corner of each corner at each vertex
+    boundary_edges: int  # edges with one face
+    nonmanifold_edges: int  # edges with more than two faces
+    inconsistent_edges: int  # two-face edges that both faces traverse in the same direction
+    repeated_vertex_faces: int  # faces naming a vertex twice
+
+    @property
+    def closed(self) -> bool:
+        """Watertight, manifold and consistently oriented: every edge has exactly two opposite faces."""
+        return self.edge_count > 0 and self.boundary_edges == 0 and self.nonmanifold_edges == 0 and (
+            self.inconsistent_edges == 0
+        )
+
+    def summary(self) -> dict:
+        return {
+            "closed": self.closed,
+            "edges": self.edge_count,
+            "boundary_edges": self.boundary_edges,
+            "nonmanifold_edges": self.nonmanifold_edges,
+            "inconsistent_edges": self.inconsistent_edges,
+            "repeated_vertex_faces": self.repeated_vertex_faces,
+        }
+
+
+def analyse_topology(faces: np.ndarray, vertices: np.ndarray) -> Topology:
+    m = len(faces)
+    # "+ 0.0" turns -0.0 into 0.0, so the two weld
+    _, welded_id, welded_count = np.unique(vertices + 0.0, axis=0, return_inverse=True, return_counts=True)
+    vertex_count = len(welded_count)
+    f = welded_id.reshape(-1)[faces].astype(np.int64)
+    repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
+    start = f  # directed edges ab, bc, ca of every face
+    end = np.roll(f, -1, axis=1)
+    lo, hi = np.minimum(start, end), np.maximum(start, end)
+    keys = lo * vertex_count + hi
+    usable = np.repeat(~repeated[:, None], 3, axis=1)
+    edge_keys, inverse, counts = np.unique(keys[usable], return_inverse=True, return_counts=True)
+    edge_count = len(edge_keys)
+    face_edge = np.full((m, 3), edge_count, dtype=np.int32)
+    face_edge[usable] = inverse.astype(np.int32)
+    # orientation: +1 where the face runs lo -> hi; a consistent two-face edge sums to zero
+    direction = np.where(start < end, 1, -1)[usable]
+    orientation_sum = np.bincount(inverse, weights=direction, minlength=edge_count)
+    two = counts == 2
+    face_of_slot = np.repeat(np.arange(m), 3).reshape(m, 3)[usable]
+    order = np.argsort(inverse, kind="stable")
+    edge_face_start = np.zeros(edge_count + 2, dtype=np.int32)
+    edge_face_start[1 : edge_count + 1] = np.cumsum(counts)
+    edge_face_start[edge_count + 1] = edge_face_start[edge_count]  # the null edge has no faces
+    vertex_of_corner = f.reshape(-1)
+    corner_order = np.argsort(vertex_of_corner, kind="stable")
+    vertex_corner_start = np.zeros(vertex_count + 1, dtype=np.int32)
+    vertex_corner_start[1:] = np.cumsum(np.bincount(vertex_of_corner, minlength=vertex_count))
+    return Topology(
+        welded_faces=f.astype(np.int32),
+        welded_count=vertex_count,
+        face_edge=face_edge,
+        edge_count=edge_count,
+        edge_face_start=edge_face_start,
+        edge_face=face_of_slot[order].astype(np.int32),
+        vertex_corner_start=vertex_corner_start,
+        vertex_corner=corner_order.astype(np.int32),
+        boundary_edges=int(np.sum(counts == 1)),
+        nonmanifold_edges=int(np.sum(counts > 2)),
+        inconsistent_edges=int(np.sum(two & (orientation_sum != 0))),
+        repeated_vertex_faces=int(np.sum(repeated)),
+    )
+
+
+def enclosed_volume(vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float]:
+    """(signed volume, surface area) in float64; the volume is positive for outward-facing faces."""
+    v = vertices.astype(np.float64)
+    a, b, c = v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]]
+    volume = float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+    area = float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum() / 2.0)
+    return volume, area
+
+
+def encloses_volume(volume: float, area: float, extent: float) -> bool:
+    return abs(volume) > MIN_ENCLOSED_VOLUME * area * extent
+
+
+def resolve_sign(requested: str, topology: Topology, solid: bool) -> str:
+    """The method `auto` stands for: pseudonormals for a closed mesh that encloses volume, else winding numbers."""
+    if requested != "auto":
+        return requested
+    return "pseudonormal" if topology.closed and solid else "winding"
+
+
+@wp.struct
+class SignView:
+    method: int
+    faces: wp.array(dtype=wp.vec3i)  # over welded vertex ids
+    face_edge: wp.array(dtype=wp.vec3i)
+    face_normal: wp.array(dtype=wp.vec3)  # unit, zero for a degenerate face
+    vertex_normal: wp.array(dtype=wp.vec3)  # angle-weighted pseudonormal, unit or zero
+    edge_normal: wp.array(dtype=wp.vec3)  # sum of the adjacent face normals, unit or zero
+
+
+class Pseudonormals:
+    """Owns the topology on the device and the per-frame face, vertex and edge pseudonormals."""
+
+    def __init__(self, method: str, topology: Topology, faces: wp.array, buffers: DeviceBuffers):
+        self.method = method
+        self.device = buffers.device
+        self.faces = faces
+        self.face_count = faces.shape[0]
+        self.edge_count = topology.edge_count
+        active = method == "pseudonormal"
+        self.vertex_count = topology.welded_count if active else 1
+        b = buffers
+
+        def upload(name, data, dtype):
+            arr = b.array(name, len(data), dtype)
+            if len(data):
+                arr.assign(data)
+            return arr
+
+        self.welded_faces = upload(
+            "sign.welded_faces", topology.welded_faces if active else np.zeros((1, 3), np.int32), wp.vec3i
+        )
+        self.face_edge = upload("sign.face_edge", topology.face_edge if active else np.zeros((1, 3), np.int32), wp.vec3i)
+        self.edge_face_start = upload("sign.edge_face_start", topology.edge_face_start if active else [0], wp.int32)
+        self.edge_face = upload("sign.edge_face", topology.edge_face if active else [0], wp.int32)
+        self.vertex_corner_start = upload(
+            "sign.vertex_corner_start", topology.vertex_corner_start if active else [0], wp.int32
+        )
+        self.vertex_corner = upload("sign.vertex_corner", topology.vertex_corner if active else [0], wp.int32)
+        self.face_normal = b.array("sign.face_normal", self.face_count if active else 1, wp.vec3)
+        self.face_angles = b.array("sign.face_angles", self.face_count if active else 1, wp.vec3)
+        self.vertex_normal = b.array("sign.vertex_normal", self.vertex_count, wp.vec3)
+        self.edge_normal = b.array("sign.edge_normal", self.edge_count + 1 if active else 1, wp.vec3)
+
+    def update(self, vertices: wp.array) -> None:
+        if self.method != "pseudonormal":
+            return
+        wp.launch(_face_normals, dim=self.face_count, inputs=[vertices, self.faces],
+                  outputs=[self.face_normal, self.face_angles], device=self.device)
+        wp.launch(_vertex_normals, dim=self.vertex_count,
+                  inputs=[self.vertex_corner_start, self.vertex_corner, self.face_normal, self.face_angles],
+                  outputs=[self.vertex_normal], device=self.device)
+        wp.launch(_edge_normals, dim=self.edge_count + 1, inputs=[self.edge_face_start, self.edge_face, self.face_normal],
+                  outputs=[self.edge_normal], device=self.device)
+
+    def view(self) -> SignView:
+        v = SignView()
+        v.method = _SIGN_CODES[self.method]
+        v.faces = self.welded_faces
+        v.face_edge = self.face_edge
+        v.face_normal = self.face_normal
+        v.vertex_normal = self.vertex_normal
+        v.edge_normal = self.edge_normal
+        return v
+
+
+@wp.func
+def feature_normal(sign: SignView, face: int, feature: int) -> wp.vec3:
+    """Pseudonormal of a closest feature of `face` (see _geometry's feature codes)."""
+    if feature == FACE:
+        return sign.face_normal[face]
+    if feature <= VERTEX_C:
+        return sign.vertex_normal[sign.faces[face][feature - VERTEX_A]]
+    return sign.edge_normal[sign.face_edge[face][feature - EDGE_AB]]
+
+
+@wp.func
+def is_inside(sign: SignView, bvh: BvhView, p: wp.vec3, face: int, closest: wp.vec3, feature: int) -> bool:
+    """Whether p is inside: by the pseudonormal of its closest feature when there is one (face >= 0) and it
+    is not degenerate, else by the winding number (|w| > 1/2, so an inside-out mesh gives the same answer)."""
+    if sign.method == _PSEUDONORMAL and face >= 0:
+        side = wp.dot(p - closest, feature_normal(sign, face, feature))
+        if side != 0.0:
+            return side < 0.0
+    if sign.method == _PSEUDONORMAL or sign.method == _WINDING:
+        return wp.abs(winding_number(bvh, p)) > 0.5
+    return False
+
+
+@wp.kernel(enable_backward=False)
+def _face_normals(
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    face_normal: wp.array(dtype=wp.vec3),
+    face_angles: wp.array(dtype=wp.vec3),
+):
+    f = wp.tid()
+    tri = faces[f]
+    a = vertices[tri[0]]
+    b = vertices[tri[1]]
+    c = vertices[tri[2]]
+    n = wp.cross(b - a, c - a)
+    longest_sq = wp.max(wp.max(wp.length_sq(b - a), wp.length_sq(c - b)), wp.length_sq(a - c))
+    length = wp.length(n)
+    if length <= _DEGENERATE * longest_sq or length == 0.0:
+        face_normal[f] = wp.vec3(0.0)
+        face_angles[f] = wp.vec3(0.0)
+        return
+    face_normal[f] = n / length
+    ab = b - a
+    bc = c - b
+    ca = a - c
+    face_angles[f] = wp.vec3(
+        wp.atan2(wp.length(wp.cross(ab, -ca)), wp.dot(ab, -ca)),
+        wp.atan2(wp.length(wp.cross(bc, -ab)), wp.dot(bc, -ab)),
+        wp.atan2(wp.length(wp.cross(ca, -bc)), wp.dot(ca, -bc)),
+    )
+
+
+@wp.func
+def _unit_or_zero(v: wp.vec3) -> wp.vec3:
+    length = wp.length(v)
+    if length > 0.0:
+        return v / length
+    return wp.vec3(0.0)
+
+
+@wp.kernel(enable_backward=False)
+def _vertex_normals(
+    corner_start: wp.array(dtype=wp.int32),
+    corners: wp.array(dtype=wp.int32),
+    face_normal: wp.array(dtype=wp.vec3),
+    face_angles: wp.array(dtype=wp.vec3),
+    vertex_normal: wp.array(dtype=wp.vec3),
+):
+    v = wp.tid()
+    total = wp.vec3(0.0)
+    for i in range(corner_start[v], corner_start[v + 1]):
+        slot = corners[i]
+        face = slot // 3
+        total += face_angles[face][slot - 3 * face] * face_normal[face]
+    vertex_normal[v] = _unit_or_zero(total)
+
+
+@wp.kernel(enable_backward=False)
+def _edge_normals(
+    face_start: wp.array(dtype=wp.int32),
+    faces_of_edge: wp.array(dtype=wp.int32),
+    face_normal: wp.array(dtype=wp.vec3),
+    edge_normal: wp.array(dtype=wp.vec3),
+):
+    e = wp.tid()
+    total = wp.vec3(0.0)
+    for i in range(face_start[e], face_start[e + 1]):
+        total += face_normal[faces_of_edge[i]]
+    edge_normal[e] = _unit_or_zero(total)

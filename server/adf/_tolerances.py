@@ -1,0 +1,38 @@
+"""Every numeric tolerance of the engine, in one place, relative to a stated scale."""
+
+# The domain is a cube around the mesh's bounding box, widened on each side by this fraction of the box's
+# largest extent, so the octree holds values a little beyond the surface.
+DOMAIN_MARGIN = 0.1
+
+# A frame whose bounding box leaves the domain, or whose largest extent falls below this fraction of the
+# domain's side (the octree would be too coarse for it), moves the domain to fit the new frame.
+REDOMAIN_MIN_FILL = 1.0 / 8.0
+
+# Surface cells: a triangle is tested against each finest cell grown by this fraction of the cell size,
+# so rounding never drops a cell the surface touches (a few extra cells are harmless).
+CELL_OVERLAP_SLACK = 1.0e-3
+
+# Closest feature: a barycentric coordinate within this of 0 puts the closest point on the edge or vertex,
+# whose pseudonormal then gives the sign.
+FEATURE_SNAP = 1.0e-5
+
+# A triangle whose doubled area is below this fraction of its longest edge squared is treated as its
+# three edges (a segment or a point); no face normal is formed from it.
+DEGENERATE_AREA = 1.0e-12
+
+# Fast winding number: a BVH node is replaced by its dipole when the point is farther from the node's
+# area-weighted centre than this many node radii (Barill et al. 2018 use 2).
+WINDING_FAR_FIELD = 2.0
+
+# A closed mesh whose enclosed volume is below this fraction of (area x extent) encloses nothing
+# (a doubled sheet, a flat closed shape); "auto" does not pick pseudonormals for it.
+MIN_ENCLOSED_VOLUME = 1.0e-6
+
+# Points are sent to the device in batches of at most this many, so memory stays bounded.
+QUERY_CHUNK = 1 << 20
+
+# Size limits checked at the boundary (vertex and face indices stay within int32 arithmetic).
+MAX_VERTICES = 1 << 26
+MAX_FACES = 1 << 26
+MAX_DEPTH = 10
+MAX_HALO = 2

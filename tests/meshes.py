@@ -1,0 +1,86 @@
+"""Test meshes: the bundled and shared data sets, and generated shapes with known properties."""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+import pytest
+import trimesh
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+BUNDLED = ROOT / "tests" / "data"
+SHARED = ROOT.parent / "shared" / "data"
+
+
+def data_file(name: str) -> pathlib.Path:
+    for folder in (BUNDLED, SHARED):
+        path = folder / f"{name}.npz"
+        if path.exists():
+            return path
+    pytest.skip(f"{name}.npz is in neither {BUNDLED} nor {SHARED}")
+
+
+def load(name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices float32 (N, 3), faces int32 (M, 3)); for a sequence, its first frame."""
+    if name in GENERATED:
+        return GENERATED[name]()
+    data = np.load(data_file(name))
+    vertices = data["vertices"]
+    if vertices.ndim == 3:
+        vertices = vertices[0]
+    return np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(data["faces"], np.int32)
+
+
+def load_sequence(name: str) -> tuple[np.ndarray, np.ndarray]:
+    data = np.load(data_file(name))
+    return data["vertices"].astype(np.float32), data["faces"].astype(np.int32)
+
+
+def _mesh(m: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
+    return np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.int32)
+
+
+def sphere():
+    return _mesh(trimesh.creation.icosphere(subdivisions=3, radius=1.0))
+
+
+def box():
+    return _mesh(trimesh.creation.box(extents=(2.0, 1.0, 0.5)))
+
+
+def torus():
+    return _mesh(trimesh.creation.torus(major_radius=1.0, minor_radius=0.3, major_sections=48, minor_sections=16))
+
+
+def sheet(n: int = 24):
+    """An open square sheet (like cloth), n x n quads in the z = 0 plane, slightly waved."""
+    x, y = np.meshgrid(np.linspace(-1, 1, n + 1), np.linspace(-1, 1, n + 1), indexing="ij")
+    z = 0.1 * np.sin(2.0 * x) * np.cos(1.5 * y)
+    vertices = np.stack([x, y, z], axis=-1).reshape(-1, 3).astype(np.float32)
+    idx = np.arange((n + 1) * (n + 1)).reshape(n + 1, n + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]).astype(np.int32)
+    return vertices, faces
+
+
+def single_triangle():
+    return np.array([[0, 0, 0], [1, 0, 0], [0.2, 0.9, 0.1]], np.float32), np.array([[0, 1, 2]], np.int32)
+
+
+GENERATED = {"sphere": sphere, "box": box, "torus": torus, "sheet": sheet, "single-triangle": single_triangle}
+
+# Meshes and whether they are closed (the oracle's sign is meaningful everywhere only for closed ones).
+CLOSED = {"sphere", "box", "torus", "spot", "fandisk", "homer", "rocker-arm", "armadillo-86k"}
+
+
+def surface_samples(vertices: np.ndarray, faces: np.ndarray, per_face: int, rng: np.random.Generator) -> np.ndarray:
+    """Random points on every face (uniform barycentric), plus the vertices."""
+    tri = vertices[faces].astype(np.float64)
+    r1, r2 = rng.random((2, len(faces), per_face))
+    flip = r1 + r2 > 1.0
+    r1, r2 = np.where(flip, 1.0 - r1, r1), np.where(flip, 1.0 - r2, r2)
+    samples = tri[:, None, 0] + r1[..., None] * (tri[:, None, 1] - tri[:, None, 0]) + r2[..., None] * (
+        tri[:, None, 2] - tri[:, None, 0]
+    )
+    return np.concatenate([samples.reshape(-1, 3), vertices.astype(np.float64)])

@@ -1,0 +1,277 @@
+"""The ADF engine against the float64 oracle, on the CPU back-end and on CUDA when present."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import meshes
+import oracle
+import tolerances as tol
+from badf.server.adf import DistanceField
+
+ALL_OUTPUTS = ("distance", "closest_point", "normal", "face")
+
+
+def domain_of(field: DistanceField) -> tuple[np.ndarray, float]:
+    info = field.info()["domain"]
+    return np.asarray(info["centre"]), float(info["side"])
+
+
+def query_points(field: DistanceField, vertices, faces, rng, count: int = 300) -> np.ndarray:
+    """Uniform points in the domain, points near and on the surface, and a few far away."""
+    centre, side = domain_of(field)
+    diag = oracle.bbox_diagonal(vertices)
+    uniform = centre + (rng.random((count, 3)) - 0.5) * side
+    surface = meshes.surface_samples(vertices, faces, 1, rng)
+    surface = surface[rng.choice(len(surface), size=count // 2, replace=len(surface) < count // 2)]
+    near = surface + rng.normal(scale=0.01 * diag, size=surface.shape)
+    far = centre + rng.normal(size=(8, 3)) * 50.0 * diag
+    return np.concatenate([uniform, near, surface[: count // 6], far])
+
+
+def distance_to_own_face(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, face: np.ndarray) -> np.ndarray:
+    tri = vertices[faces[face]].astype(np.float64)
+    q = oracle.closest_points_on_triangles(points, tri[:, 0], tri[:, 1], tri[:, 2])
+    return np.linalg.norm(points - q, axis=1)
+
+
+@pytest.mark.parametrize(
+    "name", ["sphere", "box", "torus", "spot", "fandisk", "rocker-arm", "sheet", "single-triangle", "stanford-bunny"]
+)
+def test_exact_queries_match_oracle(device, name):
+    vertices, faces = meshes.load(name)
+    rng = np.random.default_rng(1)
+    field = DistanceField(vertices, faces, depth=5, device=device)
+    points = query_points(field, vertices, faces, rng)
+    result = field.query(points, mode="exact", outputs=ALL_OUTPUTS)
+    truth = oracle.nearest(points, vertices, faces)
+    diag = oracle.bbox_diagonal(vertices)
+    # far points: float32 holds about 7 digits of the distance itself
+    allowed = tol.EXACT_DISTANCE * diag + 1e-6 * truth.distance
+    assert np.all(np.abs(np.abs(result.distance) - truth.distance) <= allowed)
+    # the reported face and closest point realise that distance (a tie may name another face)
+    assert np.all((result.face >= 0) & (result.face < len(faces)))
+    assert np.all(np.abs(distance_to_own_face(points, vertices, faces, result.face) - truth.distance) <= allowed)
+    assert np.all(np.abs(np.linalg.norm(points - result.closest_point, axis=1) - truth.distance) <= allowed)
+    assert np.all(np.abs(np.linalg.norm(result.normal, axis=1) - 1.0) < 1e-4)
+    if name in meshes.CLOSED:
+        inside = np.abs(oracle.winding_number(points, vertices, faces)) > 0.5
+        clear = truth.distance > tol.SIGN_MARGIN * diag
+        assert np.array_equal((result.distance < 0)[clear], inside[clear])
+
+
+@pytest.mark.parametrize(("name", "depth"), [("sphere", 5), ("spot", 5), ("fandisk", 4), ("torus", 4), ("sheet", 5)])
+@pytest.mark.parametrize("refine", ["surface", "centroid"])
+def test_every_stored_corner_is_exact(device, name, depth, refine):
+    vertices, faces = meshes.load(name)
+    field = DistanceField(vertices, faces, depth=depth, refine=refine, device=device)
+    positions, values, nearest_faces = field.corner_samples()
+    truth = oracle.nearest(positions, vertices, faces)
+    diag = oracle.bbox_diagonal(vertices)
+    assert np.all(np.abs(np.abs(values) - truth.distance) <= tol.EXACT_DISTANCE * diag)
+    own = distance_to_own_face(positions, vertices, faces, nearest_faces)
+    assert np.all(np.abs(own - truth.distance) <= tol.EXACT_DISTANCE * diag)
+    if name in meshes.CLOSED:
+        inside = np.abs(oracle.winding_number(positions, vertices, faces)) > 0.5
+        clear = truth.distance > tol.SIGN_MARGIN * diag
+        assert np.array_equal((values < 0)[clear], inside[clear])
+
+
+@pytest.mark.parametrize("name", ["spot", "homer", "armadillo-86k"])
+def test_sign_agrees_with_winding_oracle_away_from_closed_surfaces(device, name):
+    vertices, faces = meshes.load(name)
+    field = DistanceField(vertices, faces, depth=6, device=device)
+    assert field.info()["sign"] == "pseudonormal"
+    rng = np.random.default_rng(3)
+    centre, side = domain_of(field)
+    points = centre + (rng.random((400, 3)) - 0.5) * side
+    surface = meshes.surface_samples(vertices, faces, 1, rng)
+    points = np.concatenate([points, surface[rng.choice(len(surface), 400)] + rng.normal(size=(400, 3)) * 0.005 * side])
+    truth = oracle.nearest(points, vertices, faces).distance
+    inside = np.abs(oracle.winding_number(points, vertices, faces)) > 0.5
+    clear = truth > tol.SIGN_MARGIN * oracle.bbox_diagonal(vertices)
+    for mode in ("exact", "adf"):
+        result = field.query(points[clear], mode=mode)
+        if mode == "adf":  # interpolation may blur the sign only within a cell of the surface
+            keep = truth[clear] > field.info()["domain"]["finest_cell"] * 2
+            assert np.array_equal((result.distance < 0)[keep], inside[clear][keep])
+        else:
+            assert np.array_equal(result.distance < 0, inside[clear])
+
+
+def _cells_of(points: np.ndarray, field: DistanceField) -> np.ndarray:
+    centre, side = domain_of(field)
+    depth = field.info()["depth"]
+    g = (points - (centre - side / 2)) / (side / (1 << depth))
+    return np.clip(np.floor(g).astype(np.int64), 0, (1 << depth) - 1)
+
+
+def _encode(cells: np.ndarray, level: np.ndarray | int) -> np.ndarray:
+    return (np.asarray(level, dtype=np.int64) << 40) | (cells[:, 0] << 26) | (cells[:, 1] << 13) | cells[:, 2]
+
+
+@pytest.mark.parametrize("name", ["sphere", "fandisk", "sheet", "single-triangle", "box"])
+def test_octree_invariants(device, name):
+    vertices, faces = meshes.load(name)
+    depth = 6
+    field = DistanceField(vertices, faces, depth=depth, device=device)
+    levels, cells = field.octree_cells()
+    codes = _encode(cells, levels)
+    # no duplicates, and every node's parent exists
+    assert len(np.unique(codes)) == len(codes)
+    child = levels > 0
+    parents = _encode(cells[child] >> 1, levels[child] - 1)
+    assert np.all(np.isin(parents, codes))
+    # every finest cell the surface passes through is refined (samples on every face, and the vertices)
+    samples = meshes.surface_samples(vertices, faces, 12, np.random.default_rng(5))
+    assert np.all(np.isin(_encode(_cells_of(samples, field), depth), codes))
+    # every node holds surface: each level's cells are ancestors of the finest ones
+    finest = cells[levels == depth]
+    for level in range(depth + 1):
+        expected = np.unique(_encode(finest >> (depth - level), level))
+        assert np.array_equal(np.sort(codes[levels == level]), expected)
+
+
+def test_centroid_rule_refines_only_centroid_cells(device):
+    vertices, faces = meshes.box()  # 12 large triangles: most cells they cross hold no centroid
+    depth = 5
+    field = DistanceField(vertices, faces, depth=depth, refine="centroid", halo=0, device=device)
+    levels, cells = field.octree_cells()
+    centroids = vertices[faces].astype(np.float64).mean(axis=1)
+    expected = np.unique(_encode(_cells_of(centroids, field), depth))
+    assert np.array_equal(np.sort(_encode(cells[levels == depth], depth)), expected)
+    coverage = DistanceField(vertices, faces, depth=depth, refine="surface", halo=0, device=device)
+    assert coverage.stats()["counts"]["surface_cells"] > len(expected)
+
+
+def test_halo_adds_the_neighbours_of_surface_cells(device):
+    vertices, faces = meshes.load("spot")
+    depth = 5
+    bare = DistanceField(vertices, faces, depth=depth, halo=0, device=device)
+    grown = DistanceField(vertices, faces, depth=depth, halo=1, device=device)
+    levels, cells = bare.octree_cells()
+    finest = cells[levels == depth]
+    offsets = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    neighbours = np.clip((finest[:, None, :] + offsets[None]).reshape(-1, 3), 0, (1 << depth) - 1)
+    expected = np.unique(_encode(neighbours, depth))
+    levels, cells = grown.octree_cells()
+    assert np.array_equal(np.sort(_encode(cells[levels == depth], depth)), expected)
+
+
+@pytest.mark.parametrize("name", ["sphere", "spot", "sheet"])
+def test_unique_corners_are_the_distinct_corner_positions(device, name):
+    vertices, faces = meshes.load(name)
+    depth = 5
+    field = DistanceField(vertices, faces, depth=depth, device=device)
+    levels, cells = field.octree_cells()
+    # the corners of every leaf: the children (present or empty) of every node above the finest level
+    internal = levels < depth
+    corners = set()
+    offsets = np.stack(np.meshgrid(*[np.arange(3)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    for level in range(depth):
+        at = cells[internal & (levels == level)]
+        half = 1 << (depth - level - 1)
+        lattice = (at[:, None, :] << (depth - level)) + offsets[None, :, :] * half
+        corners.update(map(tuple, lattice.reshape(-1, 3)))
+    stats = field.stats()["counts"]
+    assert stats["unique_corners"] == len(corners)
+    positions, _, _ = field.corner_samples()
+    assert len(np.unique(positions, axis=0)) == len(positions) == len(corners)
+    assert stats["corner_candidates"] > stats["unique_corners"]
+
+
+@pytest.mark.parametrize("name", ["sphere", "spot", "rocker-arm"])
+def test_adf_error_near_the_surface_is_below_one_finest_cell(device, name):
+    vertices, faces = meshes.load(name)
+    field = DistanceField(vertices, faces, depth=6, device=device)
+    cell = field.info()["domain"]["finest_cell"]
+    rng = np.random.default_rng(9)
+    surface = meshes.surface_samples(vertices, faces, 1, rng)
+    surface = surface[rng.choice(len(surface), 600)]
+    direction = rng.normal(size=surface.shape)
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    points = surface + direction * rng.random((len(surface), 1)) * 2.0 * cell
+    truth = oracle.signed_distance(points, vertices, faces)
+    result = field.query(points, mode="adf", outputs=("distance", "normal"))
+    assert np.abs(result.distance - truth).max() < tol.ADF_NEAR_SURFACE * cell
+    assert np.all(np.isfinite(result.normal))
+
+
+def test_coherence_gives_identical_results_over_an_animation(device):
+    frames, faces = meshes.load_sequence("vlasic_samba")
+    frames = frames[::6]  # 10 frames, so the test stays short on the CPU back-end
+    with_coherence = DistanceField(frames[0], faces, depth=6, coherence=True, device=device)
+    without = DistanceField(frames[0], faces, depth=6, coherence=False, device=device)
+    rng = np.random.default_rng(11)
+    for vertices in frames[1:]:
+        assert with_coherence.update(vertices) == without.update(vertices)
+        assert with_coherence.stats()["counts"]["coherent_frame"]
+        _, a, _ = with_coherence.corner_samples()
+        _, b, _ = without.corner_samples()
+        np.testing.assert_array_equal(a, b)
+        points = vertices[rng.choice(len(vertices), 200)] + rng.normal(scale=0.02, size=(200, 3))
+        for mode in ("adf", "exact"):
+            np.testing.assert_array_equal(with_coherence.query(points, mode=mode).distance,
+                                          without.query(points, mode=mode).distance)
+    # and the last frame is exact
+    positions, values, _ = with_coherence.corner_samples()
+    pick = rng.choice(len(positions), 300, replace=False)
+    truth = oracle.nearest(positions[pick], frames[-1], faces).distance
+    assert np.abs(np.abs(values[pick]) - truth).max() <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frames[-1])
+
+
+def test_update_tracks_a_deforming_mesh(device):
+    vertices, faces = meshes.sphere()
+    field = DistanceField(vertices, faces, depth=5, device=device)
+    rng = np.random.default_rng(13)
+    points = rng.uniform(-2, 2, size=(300, 3))
+    for step in range(1, 4):
+        moved = vertices * np.array([1.0 + 0.2 * step, 1.0, 1.0 - 0.1 * step], np.float32)
+        assert field.update(moved) == step
+        truth = oracle.signed_distance(points, moved, faces)
+        np.testing.assert_allclose(field.query(points, mode="exact").distance, truth,
+                                   atol=tol.EXACT_DISTANCE * oracle.bbox_diagonal(moved))
+
+
+def test_band_clamps_and_keeps_the_sign(device):
+    vertices, faces = meshes.load("spot")
+    diag = oracle.bbox_diagonal(vertices)
+    band = 0.05 * diag
+    field = DistanceField(vertices, faces, depth=5, band=band, device=device)
+    rng = np.random.default_rng(17)
+    points = query_points(field, vertices, faces, rng)
+    truth = np.clip(oracle.signed_distance(points, vertices, faces), -band, band)
+    result = field.query(points, mode="exact", outputs=ALL_OUTPUTS)
+    np.testing.assert_allclose(result.distance, truth, atol=tol.EXACT_DISTANCE * diag)
+    beyond = np.abs(truth) >= band * (1 + 1e-4)
+    assert np.all(result.face[beyond] == -1)
+    assert np.all(result.face[np.abs(truth) < band * (1 - 1e-4)] >= 0)
+    _, values, _ = field.corner_samples()
+    assert np.all(np.abs(values) <= band * (1 + 1e-6))
+    adf = field.query(points, mode="adf").distance
+    assert np.all(np.abs(adf) <= band * (1 + 1e-6))
+
+
+def test_unsigned_field_for_open_sheet(device):
+    vertices, faces = meshes.sheet()
+    field = DistanceField(vertices, faces, depth=5, sign="none", device=device)
+    points = np.random.default_rng(19).uniform(-1.2, 1.2, size=(400, 3))
+    truth = oracle.nearest(points, vertices, faces).distance
+    result = field.query(points, mode="exact")
+    assert np.all(result.distance >= 0)
+    np.testing.assert_allclose(result.distance, truth, atol=tol.EXACT_DISTANCE * oracle.bbox_diagonal(vertices))
+
+
+def test_auto_sign_picks_winding_for_open_meshes_and_it_matches_the_oracle(device):
+    vertices, faces = meshes.load("stanford-bunny")
+    field = DistanceField(vertices, faces, depth=5, device=device)
+    info = field.info()
+    assert info["sign"] == "winding" and not info["topology"]["closed"]
+    rng = np.random.default_rng(23)
+    centre, side = domain_of(field)
+    points = centre + (rng.random((300, 3)) - 0.5) * side
+    w = oracle.winding_number(points, vertices, faces)
+    confident = np.abs(np.abs(w) - 0.5) > 0.1
+    result = field.query(points[confident], mode="exact")
+    assert np.array_equal(result.distance < 0, np.abs(w[confident]) > 0.5)

@@ -1,0 +1,84 @@
+"""Bad input gets a clear InvalidInputError naming what was expected and what came, and changes nothing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import meshes
+from badf.server.adf import DistanceField, InvalidInputError
+
+VERTICES, FACES = meshes.single_triangle()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"vertices": np.zeros((3, 2))}, r"vertices must have shape \(count, 3\), got \(3, 2\)"),
+        ({"vertices": np.array([[0, 0, 0], [1, 0, np.nan], [0, 1, 0]])}, "must be finite, got 1 NaN or Inf"),
+        ({"vertices": np.array([[0, 0, 0], [1, 0, np.inf], [0, 1, 0]])}, "must be finite"),
+        ({"vertices": np.array([["a", "b", "c"]] * 3)}, "must hold numbers"),
+        ({"vertices": np.zeros((0, 3))}, "vertices must not be empty"),
+        ({"vertices": np.zeros((3, 3))}, "zero extent"),
+        ({"vertices": np.array([[0, 0, 0], [1e19, 0, 0], [0, 1, 0]])}, r"within \+-1e\+18"),
+        ({"faces": np.array([[0, 1, 3]])}, r"faces must index vertices 0..2, got indices in \[0, 3\]"),
+        ({"faces": np.array([[0, 1, -1]])}, "first at row 0"),
+        ({"faces": np.zeros((0, 3), int)}, "faces must not be empty"),
+        ({"faces": np.array([[0.0, 1.0, 2.0]])}, "integer vertex indices, got dtype float64"),
+        ({"faces": np.array([0, 1, 2])}, r"faces must have shape \(count, 3\)"),
+        ({"depth": 0}, "depth must be in 1..10, got 0"),
+        ({"depth": 11}, "depth must be in 1..10"),
+        ({"depth": 2.5}, "depth must be an integer"),
+        ({"sign": "inside"}, "sign must be one of auto, pseudonormal, winding, none"),
+        ({"band": -1.0}, "band must be a positive finite number"),
+        ({"band": float("nan")}, "band must be a positive finite number"),
+        ({"refine": "everywhere"}, "refine must be one of surface, centroid"),
+        ({"halo": 3}, r"halo must be an integer in 0..2"),
+        ({"coherence": "yes"}, "coherence must be True or False"),
+        ({"device": "tpu:0"}, "device 'tpu:0' is not available"),
+    ],
+)
+def test_construction_rejects_bad_input(kwargs, message):
+    args = {"vertices": VERTICES, "faces": FACES, "device": "cpu"} | kwargs
+    with pytest.raises(InvalidInputError, match=message):
+        DistanceField(args.pop("vertices"), args.pop("faces"), **args)
+
+
+def test_bad_frames_and_queries_leave_the_field_as_it_was(device):
+    vertices, faces = meshes.sphere()
+    field = DistanceField(vertices, faces, depth=4, device=device)
+    points = np.random.default_rng(0).uniform(-1.5, 1.5, size=(50, 3)).astype(np.float32)
+    before = field.query(points, mode="adf", outputs=("distance", "normal"))
+    bad_frames = [
+        (vertices[:-1], r"must have 642 rows \(the registered vertex count\), got 641"),
+        (np.where(np.arange(len(vertices))[:, None] == 5, np.nan, vertices), "must be finite"),
+        (vertices.astype(str), "must hold numbers"),
+        (vertices.reshape(-1), r"shape \(count, 3\)"),
+    ]
+    for frame, message in bad_frames:
+        with pytest.raises(InvalidInputError, match=message):
+            field.update(frame)
+    bad_queries = [
+        ({"points": points[:, :2]}, r"points must have shape \(count, 3\), got \(50, 2\)"),
+        ({"points": np.full((2, 3), np.inf)}, "points must be finite"),
+        ({"mode": "fast"}, "mode must be one of adf, exact"),
+        ({"outputs": ("distance", "curvature")}, r"unknown outputs \['curvature'\]"),
+        ({"outputs": ()}, "outputs must name at least one"),
+    ]
+    for kwargs, message in bad_queries:
+        args = {"points": points} | kwargs
+        with pytest.raises(InvalidInputError, match=message):
+            field.query(args.pop("points"), **args)
+    assert field.frame == 0
+    after = field.query(points, mode="adf", outputs=("distance", "normal"))
+    np.testing.assert_array_equal(before.distance, after.distance)
+    np.testing.assert_array_equal(before.normal, after.normal)
+
+
+def test_empty_query_and_unrequested_outputs(device):
+    vertices, faces = meshes.sphere()
+    field = DistanceField(vertices, faces, depth=3, device=device)
+    empty = field.query(np.zeros((0, 3)), outputs=("distance", "face"))
+    assert empty.distance.shape == (0,) and empty.face.shape == (0,)
+    only_normal = field.query(np.ones((4, 3)), outputs=("normal",))
+    assert only_normal.distance is None and only_normal.normal.shape == (4, 3)
