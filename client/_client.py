@@ -110,6 +110,7 @@ class Client:
         band: float | None = None,
         coherence: bool = True,
         refine: RefineMethod = "surface",
+        halo: int = 1,
         frame: int = 0,
         replace: bool = False,
         worker: str | None = None,
@@ -119,9 +120,9 @@ class Client:
 
         Placed on `worker`, or on the least-loaded worker; an existing object of that name is an
         ObjectExistsError unless `replace`. `frame` numbers the initial vertices. Blocks until the worker
-        has built the field; see ObjectOptions for depth, sign, band, coherence and refine.
+        has built the field; see ObjectOptions for depth, sign, band, coherence, refine and halo.
         """
-        options = ObjectOptions(depth=depth, sign=sign, band=band, coherence=coherence, refine=refine)
+        options = ObjectOptions(depth=depth, sign=sign, band=band, coherence=coherence, refine=refine, halo=halo)
         request = RegisterRequest(name, vertices, faces, options, frame=frame, replace=replace)
         target = self._place(name, replace=replace, worker=worker, timeout=timeout)
         info = self._ask(self.keys.worker_register(target), request, ObjectInfo, timeout=timeout)

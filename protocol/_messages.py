@@ -45,7 +45,9 @@ REFINE_METHODS: tuple[str, ...] = get_args(RefineMethod)
 QUERY_MODES: tuple[str, ...] = get_args(QueryMode)
 QUERY_OUTPUTS: tuple[str, ...] = get_args(QueryOutput)
 AXES: tuple[str, ...] = get_args(Axis)
+# Sanity bounds checked on decode; the engine enforces its own, narrower ranges (RejectedInputError).
 MAX_DEPTH = 30
+MAX_HALO = 8
 MAX_ERROR_MESSAGE_LENGTH = 4000
 
 
@@ -283,9 +285,11 @@ class _Message:
 class ObjectOptions:
     """Per-object engine options, fixed at registration.
 
-    depth: the octree's maximum depth. sign: how inside is told from outside ("none" for open surfaces:
+    depth: the octree's finest level. sign: how inside is told from outside ("none" for open surfaces:
     distances are then unsigned). band: distances beyond it are clamped (None: no band). coherence: reuse
-    the last frame's nearest triangle as an upper bound (off for rigid objects). refine: how cells are split.
+    the last frame's nearest triangles as upper bounds (off for rigid objects). refine: which cells are
+    split ("surface": every cell the surface crosses; "centroid": the paper's rule). halo: finest cells of
+    refinement added around those. The engine's docstring (badf.server.adf.DistanceField) has the details.
     """
 
     depth: int = 7
@@ -293,6 +297,7 @@ class ObjectOptions:
     band: float | None = None
     coherence: bool = True
     refine: RefineMethod = "surface"
+    halo: int = 1
 
     def __post_init__(self) -> None:
         owner = "ObjectOptions"
@@ -302,9 +307,13 @@ class ObjectOptions:
             _set(self, "band", _check_number(owner, "band", self.band, positive=True))
         _set(self, "coherence", _check_flag(owner, "coherence", self.coherence))
         _check_choice(owner, "refine", self.refine, REFINE_METHODS)
+        _set(self, "halo", _check_int(owner, "halo", self.halo, maximum=MAX_HALO))
 
     def to_json(self) -> dict[str, Any]:
-        return {"depth": self.depth, "sign": self.sign, "band": self.band, "coherence": self.coherence, "refine": self.refine}
+        return {
+            "depth": self.depth, "sign": self.sign, "band": self.band, "coherence": self.coherence,
+            "refine": self.refine, "halo": self.halo,
+        }  # fmt: skip
 
     @classmethod
     def from_fields(cls, fields: _Fields) -> ObjectOptions:
@@ -314,6 +323,7 @@ class ObjectOptions:
             band=fields.number("band", optional=True),
             coherence=fields.flag("coherence"),
             refine=fields.text("refine"),  # type: ignore[arg-type]
+            halo=fields.integer("halo"),
         )
 
 

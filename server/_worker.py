@@ -104,6 +104,7 @@ def engine_field_builder(device: str | None) -> tuple[FieldBuilder, str]:
             band=options.band,
             coherence=options.coherence,
             refine=options.refine,
+            halo=options.halo,
             device=resolved,
         )
 

@@ -7,8 +7,6 @@ import pytest
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
-REPO_ROOT = pathlib.Path(__file__).resolve().parents[1]
-DATA_DIR = REPO_ROOT.parent / "shared" / "data"  # ../shared/data from the repository root
 
 
 def _devices() -> list[str]:

@@ -64,7 +64,7 @@ POINTS = rng.normal(size=(9, 3)).astype(np.float32)
 
 def samples() -> dict[type, object]:
     """One instance of every message type, with every optional array present where there is one."""
-    options = ObjectOptions(depth=6, sign="pseudonormal", band=0.25, coherence=False, refine="centroid")
+    options = ObjectOptions(depth=6, sign="pseudonormal", band=0.25, coherence=False, refine="centroid", halo=0)
     return {
         RegisterRequest: RegisterRequest("bunny", VERTICES, FACES, options, frame=4, replace=True),
         ObjectInfo: ObjectInfo(
@@ -306,6 +306,8 @@ def test_bad_metadata() -> None:
         ({"band": "wide"}, MetadataError),
         ({"coherence": 1}, MetadataError),
         ({"refine": "random"}, InvalidOptionError),
+        ({"halo": -1}, InvalidOptionError),
+        ({"halo": None}, MetadataError),
     ]:
         metadata = {**register, "options": {**register["options"], **options}}
         with pytest.raises(error):
