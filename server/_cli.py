@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
-from badf.protocol import DEFAULT_ENDPOINT
+from badf.protocol import DEFAULT_ENDPOINT, BadfError
 from badf.server._run import run_worker
 from badf.server._worker import WorkerSettings, default_worker_id
 
@@ -30,8 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stats-interval", type=float, default=10.0, metavar="SECONDS", help="seconds between stats lines")
 
 
-def run(args: argparse.Namespace) -> int:
-    settings = WorkerSettings(
+def settings_from(args: argparse.Namespace) -> WorkerSettings:
+    return WorkerSettings(
         worker_id=args.worker_id or default_worker_id(),
         namespace=args.namespace,
         device=args.device,
@@ -41,4 +42,12 @@ def run(args: argparse.Namespace) -> int:
         config_file=args.config,
         stats_interval_s=args.stats_interval,
     )
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        settings = settings_from(args)
+    except (BadfError, ValueError) as error:
+        print(f"badf serve: {error}", file=sys.stderr)
+        return 2
     return run_worker(settings)

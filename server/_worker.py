@@ -87,11 +87,14 @@ class WorkerSettings:
 def engine_field_builder(device: str | None) -> tuple[FieldBuilder, str]:
     """Builds the engine's DistanceField on `device`; returns the builder and the device's resolved name.
 
-    Imports Warp and the engine here, not at module import. Raises ValueError for an unknown device.
+    Imports Warp and the engine here, not at module import, and keeps Warp's per-module load messages out
+    of the worker's log (warnings and errors still show). Raises ValueError for an unknown device.
     """
     import warp as wp
 
     from badf.server.adf import DistanceField
+
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
 
     resolved = wp.get_device(device).alias
 

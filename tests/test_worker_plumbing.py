@@ -60,7 +60,7 @@ class ThreadWorker:
     """A worker serving StandInFields from a thread of this process."""
 
     def __init__(self, endpoint: str, *, worker_id: str = "w1", mode: str = "router", connect: tuple[str, ...] = (), **settings):
-        listen = (endpoint,) if mode == "router" else ()
+        listen = (endpoint,) if mode == "router" and endpoint else None
         self.settings = WorkerSettings(worker_id=worker_id, mode=mode, listen=listen, connect=connect, **settings)
         self.fields: list[StandInField] = []
         self._stop = threading.Event()
@@ -329,3 +329,42 @@ def test_two_workers_share_a_namespace(endpoint: str) -> None:
 def test_no_router_is_a_clear_error() -> None:
     with pytest.raises(WorkerUnavailableError, match="cannot reach"):
         Client(free_endpoint(), timeout=0.5)
+
+
+def test_stats_line_counts_what_happened(worker: ThreadWorker, client: Client, raw: zenoh.Session) -> None:
+    worker.running.stats_line()  # starts a fresh interval
+    obj = client.register("blob", VERTICES, FACES)
+    obj.update(VERTICES + 1)
+    obj.query(POINTS)
+    assert isinstance(raw_error(raw, KEYS.object_frame("blob"), encode(Frame("blob", 9, VERTICES[:3]))), VertexCountMismatchError)
+    line = worker.running.stats_line()
+    assert "1 objects" in line and "frames 1 applied" in line and "1 rejected" in line and "queries 1 (25 points)" in line
+
+
+def test_serve_flags_become_settings(tmp_path) -> None:
+    import argparse
+
+    from badf.server import _cli
+
+    parser = argparse.ArgumentParser()
+    _cli.add_arguments(parser)
+    settings = _cli.settings_from(parser.parse_args([]))
+    assert settings.mode == "router" and settings.listen is None and settings.namespace == "badf"
+    assert settings.zenoh_config().get_json("listen/endpoints") == '["tcp/127.0.0.1:7447"]'
+    assert settings.zenoh_config().get_json("transport/shared_memory/enabled") == "false"
+    args = parser.parse_args(
+        ["--listen", "tcp/127.0.0.1:9000", "--connect", "tcp/10.0.0.1:7447", "--namespace", "lab/a", "--worker-id", "gpu-3", "--device", "cuda:1"]
+    )
+    settings = _cli.settings_from(args)
+    assert (settings.listen, settings.connect, settings.namespace, settings.worker_id, settings.device) == (
+        ("tcp/127.0.0.1:9000",), ("tcp/10.0.0.1:7447",), "lab/a", "gpu-3", "cuda:1"
+    )
+    assert _cli.run(parser.parse_args(["--worker-id", "no/slashes"])) == 2
+
+
+def test_config_file_is_the_base(tmp_path, endpoint: str) -> None:
+    config = tmp_path / "zenoh.json5"
+    config.write_text('{ listen: { endpoints: ["%s"] }, scouting: { multicast: { enabled: false } } }' % endpoint)
+    with ThreadWorker("", config_file=str(config)):  # no --listen: the file's endpoint is used
+        with Client(endpoint, timeout=10) as client:
+            assert client.workers()[0].worker == "w1"
