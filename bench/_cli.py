@@ -14,7 +14,9 @@ _BENCHMARKS: dict[str, tuple[str, str]] = {
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     benchmarks = parser.add_subparsers(dest="benchmark", required=True, metavar="BENCHMARK")
     for name, (module, description) in _BENCHMARKS.items():
-        importlib.import_module(module).add_arguments(benchmarks.add_parser(name, help=description, description=description))
+        importlib.import_module(module).add_arguments(
+            benchmarks.add_parser(name, help=description, description=description)
+        )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -32,7 +32,13 @@ _SPAWN = multiprocessing.get_context("spawn")
 _DEFAULT_MESHES = (Path("../shared/data/stanford-bunny.npz"), Path(".gpudata/stanford-bunny.npz"))
 _SMALL_MESHES = (Path("tests/data/spot.npz"), Path("../shared/data/spot.npz"))
 _ECHO_KEY = "bench/echo"
-_FULL = {"depth": 7, "points": 65_536, "round_trips": 300, "repeats": 30, "batches": "1024,4096,16384,65536,262144,1048576"}
+_FULL = {
+    "depth": 7,
+    "points": 65_536,
+    "round_trips": 300,
+    "repeats": 30,
+    "batches": "1024,4096,16384,65536,262144,1048576",
+}
 _SMALL = {"depth": 5, "points": 4096, "round_trips": 20, "repeats": 5, "batches": "1024,4096,16384"}
 
 
@@ -49,10 +55,19 @@ class Timing:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--device", default=None, help="Warp device for the worker and the in-process engine (default: Warp's)")
-    parser.add_argument("--mesh", type=Path, default=None, help="an .npz with vertices and faces (default: the Stanford bunny from ../shared/data)")
+    parser.add_argument(
+        "--device", default=None, help="Warp device for the worker and the in-process engine (default: Warp's)"
+    )
+    parser.add_argument(
+        "--mesh",
+        type=Path,
+        default=None,
+        help="an .npz with vertices and faces (default: the Stanford bunny from ../shared/data)",
+    )
     parser.add_argument("--depth", type=int, help="octree depth (default 7; 5 with --small)")
-    parser.add_argument("--points", type=int, help="points per query in the round trip (default 65,536; 4,096 with --small)")
+    parser.add_argument(
+        "--points", type=int, help="points per query in the round trip (default 65,536; 4,096 with --small)"
+    )
     parser.add_argument("--round-trips", type=int, help="timed round trips (default 300; 20 with --small)")
     parser.add_argument("--batches", help="query batch sizes, comma-separated (default 1K to 1M; to 16K with --small)")
     parser.add_argument("--repeats", type=int, help="timed queries per batch size (default 30; 5 with --small)")
@@ -76,7 +91,9 @@ def run(args: argparse.Namespace) -> int:
     frames = _deforming_frames(vertices, 32)
     rng = np.random.default_rng(0)
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
-    all_points = rng.uniform(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), size=(max(batches + [args.points]), 3)).astype(np.float32)
+    all_points = rng.uniform(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), size=(max(batches + [args.points]), 3)).astype(
+        np.float32
+    )
     points = all_points[: args.points]
     report: dict = {
         "mesh": str(mesh_path), "vertices": len(vertices), "faces": len(faces), "depth": args.depth,
@@ -85,14 +102,13 @@ def run(args: argparse.Namespace) -> int:
     }  # fmt: skip
     timings: list[Timing] = []
 
+    import warp as wp
     import zenoh
 
     from badf.client import Client
     from badf.protocol import zenoh_config
     from badf.server import WorkerSettings, run_worker
     from badf.server.adf import DistanceField
-
-    import warp as wp
 
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     field = DistanceField(vertices, faces, depth=args.depth, device=args.device)
@@ -110,7 +126,9 @@ def run(args: argparse.Namespace) -> int:
         echo_config = zenoh_config(mode="client", connect=[echo_endpoint], connect_timeout_s=120)
         with Client(endpoint, timeout=120) as client, zenoh.open(echo_config) as echo_session:
             remote = client.register("bench", vertices, faces, depth=args.depth)
-            frame_bytes, query_bytes, reply_bytes = _message_sizes(frames[0], points)
+            frame_bytes = _frame_size(frames[0])
+            query_bytes, reply_bytes = _query_sizes(points)
+            wire = (frame_bytes + query_bytes, reply_bytes)
 
             def local_round(i: int) -> None:
                 field.update(frames[i % len(frames)])
@@ -125,23 +143,16 @@ def run(args: argparse.Namespace) -> int:
                 _echo(echo_session, query_bytes, reply_bytes)
 
             n = args.round_trips
-            timings.append(_time("round trip, in-process engine", local_round, n, per_item=args.points))
-            timings.append(_time("round trip, service", served_round, n, per_item=args.points, sizes=(frame_bytes + query_bytes, reply_bytes)))
-            timings.append(_time("round trip, Zenoh echo of the same bytes", echo_round, n, sizes=(frame_bytes + query_bytes, reply_bytes)))
-            timings.append(_time("update only, in-process", lambda i: field.update(frames[i % len(frames)]), n))
-            timings.append(_time("update only, service", lambda i: remote.update(frames[i % len(frames)]), n))
+            timings += [
+                _time("round trip, in-process engine", local_round, n, per_item=args.points),
+                _time("round trip, service", served_round, n, per_item=args.points, sizes=wire),
+                _time("round trip, Zenoh echo of the same bytes", echo_round, n, sizes=wire),
+                _time("update only, in-process", lambda i: field.update(frames[i % len(frames)]), n),
+                _time("update only, service", lambda i: remote.update(frames[i % len(frames)]), n),
+            ]
             report["engine_stats_after_update"] = field.stats()
             for size in batches:
-                batch = all_points[:size]
-                _, request_size, reply_size = _message_sizes(frames[0], batch)
-                timings.append(_time(f"query {size} pts, in-process", lambda _i: field.query(batch), args.repeats, per_item=size))
-                timings.append(
-                    _time(f"query {size} pts, service", lambda _i: remote.query(batch), args.repeats, per_item=size, sizes=(request_size, reply_size))
-                )
-                timings.append(
-                    _time(f"query {size} pts, Zenoh echo", lambda _i: _echo(echo_session, request_size, reply_size), args.repeats, sizes=(request_size, reply_size))
-                )
-                timings.append(_time(f"query {size} pts, protocol codec", lambda _i: _codec(batch), args.repeats, per_item=size))
+                timings += _batch_timings(field, remote, echo_session, all_points[:size], args.repeats)
             remote.delete()
     finally:
         for process in (worker, echo):
@@ -158,6 +169,18 @@ def run(args: argparse.Namespace) -> int:
     (args.out / "service.md").write_text(table)
     print(table)
     return 0
+
+
+def _batch_timings(field, remote, echo_session, batch: np.ndarray, repeats: int) -> list[Timing]:
+    """One batch size of distance queries (adf): in-process, through the service, Zenoh alone, codec alone."""
+    size = len(batch)
+    wire = _query_sizes(batch)
+    return [
+        _time(f"query {size} pts, in-process", lambda _i: field.query(batch), repeats, per_item=size),
+        _time(f"query {size} pts, service", lambda _i: remote.query(batch), repeats, per_item=size, sizes=wire),
+        _time(f"query {size} pts, Zenoh echo", lambda _i: _echo(echo_session, *wire), repeats, sizes=wire),
+        _time(f"query {size} pts, protocol codec", lambda _i: _codec(batch), repeats, per_item=size),
+    ]
 
 
 def _find_mesh(given: Path | None, defaults: tuple[Path, ...]) -> Path:
@@ -181,7 +204,9 @@ def _deforming_frames(vertices: np.ndarray, count: int) -> list[np.ndarray]:
     return frames
 
 
-def _time(name: str, work: Callable[[int], object], count: int, *, per_item: int = 0, sizes: tuple[int, int] = (0, 0)) -> Timing:
+def _time(
+    name: str, work: Callable[[int], object], count: int, *, per_item: int = 0, sizes: tuple[int, int] = (0, 0)
+) -> Timing:
     for warm in range(min(5, count)):
         work(warm)
     samples = np.empty(count)
@@ -203,13 +228,18 @@ def _time(name: str, work: Callable[[int], object], count: int, *, per_item: int
     )
 
 
-def _message_sizes(frame: np.ndarray, points: np.ndarray) -> tuple[int, int, int]:
-    from badf.protocol import Frame, QueryReply, QueryRequest, encode
+def _frame_size(vertices: np.ndarray) -> int:
+    from badf.protocol import Frame, encode
 
-    frame_bytes = len(encode(Frame("bench", 1, frame)))
-    query_bytes = len(encode(QueryRequest("bench", points)))
-    reply_bytes = len(encode(QueryReply("bench", 1, distance=np.zeros(len(points), np.float32))))
-    return frame_bytes, query_bytes, reply_bytes
+    return len(encode(Frame("bench", 1, vertices)))
+
+
+def _query_sizes(points: np.ndarray) -> tuple[int, int]:
+    """Bytes of a distance query for `points` and of its reply."""
+    from badf.protocol import QueryReply, QueryRequest, encode
+
+    request = encode(QueryRequest("bench", points))
+    return len(request), len(encode(QueryReply("bench", 1, distance=np.zeros(len(points), np.float32))))
 
 
 def _codec(points: np.ndarray) -> None:

@@ -125,14 +125,14 @@ class Client:
         options = ObjectOptions(depth=depth, sign=sign, band=band, coherence=coherence, refine=refine, halo=halo)
         request = RegisterRequest(name, vertices, faces, options, frame=frame, replace=replace)
         target = self._place(name, replace=replace, worker=worker, timeout=timeout)
-        info = self._ask(self.keys.worker_register(target), request, ObjectInfo, timeout=timeout)
+        info = self._ask(self.keys.worker_register(target), request, ObjectInfo, timeout=timeout, worker=target)
         return RemoteObject(self, info, vertices=_owned(request.vertices, vertices), faces=_owned(request.faces, faces))
 
     def object(self, name: str, *, timeout: float | None = None) -> RemoteObject:
         """A handle on an existing object (registered by any client); ObjectNotFoundError if there is none."""
         info = self._find(name, timeout=timeout)
         if info is None:
-            raise self._nobody_answered(self.keys.object_info(name), name, None, timeout)
+            raise self._nobody_answered(self.keys.object_info(name), name=name, worker=None, timeout=timeout)
         return RemoteObject(self, info, vertices=None, faces=None)
 
     def objects(self, *, timeout: float | None = None) -> list[ObjectInfo]:
@@ -155,15 +155,21 @@ class Client:
         existing = self._find(name, timeout=timeout)
         if existing is not None:
             if not replace:
-                raise ObjectExistsError(f"object {name!r} already exists on worker {existing.worker}; pass replace=True to swap it")
+                raise ObjectExistsError(
+                    f"object {name!r} already exists on worker {existing.worker}; pass replace=True to swap it"
+                )
             if worker is not None and worker != existing.worker:
-                raise ObjectExistsError(f"object {name!r} lives on worker {existing.worker}, not {worker}; replace it there")
+                raise ObjectExistsError(
+                    f"object {name!r} lives on worker {existing.worker}, not {worker}; replace it there"
+                )
             return existing.worker
         if worker is not None:
             return worker
         workers = self.workers(timeout=timeout)
         if not workers:
-            raise WorkerUnavailableError(f"no badf worker answered in namespace {self.keys.namespace!r}; is `badf serve` running?")
+            raise WorkerUnavailableError(
+                f"no badf worker answered in namespace {self.keys.namespace!r}; is `badf serve` running?"
+            )
         return min(workers, key=lambda info: (info.face_count, info.object_count, info.worker)).worker
 
     # --- requests ----------------------------------------------------------------------------------
@@ -180,15 +186,26 @@ class Client:
         except zenoh.ZError as error:
             raise WorkerUnavailableError(f"cannot send a request on {key}: {error}") from None
 
-    def _ask(self, key: str, request: Message, expect: type[M], *, timeout: float | None, target: RemoteObject | None = None) -> M:
-        """The one reply to `request` on `key`, decoded as `expect`, or the error it carries."""
+    def _ask(
+        self,
+        key: str,
+        request: Message,
+        expect: type[M],
+        *,
+        timeout: float | None,
+        worker: str,
+        name: str | None = None,
+    ) -> M:
+        """The one reply of `worker` to `request` on `key`, decoded as `expect`, or the error it carries."""
         for reply in self._get(key, request, timeout=timeout):
             return self._read_reply(reply, expect, key, timeout)
-        name = target.name if target is not None else getattr(request, "name", None)
-        raise self._nobody_answered(key, name, None if target is None else target.worker, timeout)
+        raise self._nobody_answered(key, name=name, worker=worker, timeout=timeout)
 
     def _ask_all(self, key: str, request: Message, expect: type[M], *, timeout: float | None) -> list[M]:
-        return [self._read_reply(reply, expect, key, timeout) for reply in self._get(key, request, timeout=timeout, fan_out=True)]
+        return [
+            self._read_reply(reply, expect, key, timeout)
+            for reply in self._get(key, request, timeout=timeout, fan_out=True)
+        ]
 
     def _read_reply(self, reply: zenoh.Reply, expect: type[M], key: str, timeout: float | None) -> M:
         if reply.ok is not None:
@@ -206,14 +223,17 @@ class Client:
             return WorkerUnavailableError(f"Zenoh error on {key}: {text[:200]}")
         return error_for_code(error.code, error.message)
 
-    def _nobody_answered(self, key: str, name: str | None, worker: str | None, timeout: float | None) -> BadfError:
+    def _nobody_answered(self, key: str, *, name: str | None, worker: str | None, timeout: float | None) -> BadfError:
         """Why no queryable answered: the worker is gone, there is no worker, or there is no such object."""
         if worker is not None and not self._is_alive(worker, timeout):
-            return WorkerUnavailableError(f"worker {worker} of object {name!r} is gone (its liveliness token vanished)")
+            held = f" (it held object {name!r})" if name is not None else ""
+            return WorkerUnavailableError(f"worker {worker} is not running: its liveliness token is gone{held}")
         if worker is None and not self._worker_ids(timeout):
             return WorkerUnavailableError(f"no badf worker is reachable in namespace {self.keys.namespace!r}")
         if name is not None:
-            return ObjectNotFoundError(f"no object {name!r} in namespace {self.keys.namespace!r} (deleted, or never registered)")
+            return ObjectNotFoundError(
+                f"no object {name!r} in namespace {self.keys.namespace!r} (deleted, or never registered)"
+            )
         return WorkerUnavailableError(f"nobody answered on {key}")
 
     def _worker_ids(self, timeout: float | None) -> list[str]:
@@ -244,7 +264,9 @@ class RemoteObject:
     """An object on a worker. Keeps what a re-registration needs: faces, options and the last vertices sent
     (faces and vertices are None for a handle from `Client.object`, which did not register it)."""
 
-    def __init__(self, client: Client, info: ObjectInfo, *, vertices: np.ndarray | None, faces: np.ndarray | None) -> None:
+    def __init__(
+        self, client: Client, info: ObjectInfo, *, vertices: np.ndarray | None, faces: np.ndarray | None
+    ) -> None:
         self._client = client
         self.name = info.name
         self.worker = info.worker
@@ -276,13 +298,14 @@ class RemoteObject:
     def update(self, vertices: np.ndarray, *, timeout: float | None = None) -> int:
         """Send (N, 3) vertices as the next frame and wait until the worker has applied it; returns its number."""
         frame = self._next_frame(vertices)
-        ack = self._client._ask(self._client.keys.object_frame(self.name), frame, FrameAck, timeout=timeout, target=self)
+        ack = self._ask(self._client.keys.object_frame(self.name), frame, FrameAck, timeout)
         self._saw(ack.frame)
         return ack.frame
 
     def stream(self, vertices: np.ndarray) -> int:
         """Send (N, 3) vertices as the next frame without waiting; returns its number. The worker applies
-        the newest frame it has and drops older pending ones (see `info().frames_dropped`)."""
+        the newest frame it has and drops older pending ones (see `info().frames_dropped`). Nothing is
+        raised when no worker receives it (it is gone): `update` and `info` tell."""
         frame = self._next_frame(vertices)
         key = self._client.keys.object_frame(self.name)
         try:
@@ -303,9 +326,10 @@ class RemoteObject:
 
         The reply holds the outputs asked for: distance (P,) float32, signed, negative inside;
         closest_point (P, 3); normal (P, 3); face (P,) int32; and `frame`, the frame that answered.
+        Its arrays are read-only views of the received message (copy them to change them).
         """
         request = QueryRequest(self.name, points, mode=mode, outputs=tuple(outputs))
-        reply = self._client._ask(self._client.keys.object_query(self.name), request, QueryReply, timeout=timeout, target=self)
+        reply = self._ask(self._client.keys.object_query(self.name), request, QueryReply, timeout)
         self._saw(reply.frame)
         return reply
 
@@ -321,24 +345,27 @@ class RemoteObject:
         timeout: float | None = None,
     ) -> SliceReply:
         """Signed distances on the plane `axis` = `position` and the octree cells it crosses (SliceRequest)."""
-        request = SliceRequest(self.name, axis, position, resolution=resolution, levels=levels, cells=cells, corners=corners)  # type: ignore[arg-type]
-        reply = self._client._ask(self._client.keys.object_slice(self.name), request, SliceReply, timeout=timeout, target=self)
+        request = SliceRequest(
+            self.name, axis, position, resolution=resolution, levels=levels, cells=cells, corners=corners
+        )  # type: ignore[arg-type]
+        reply = self._ask(self._client.keys.object_slice(self.name), request, SliceReply, timeout)
         self._saw(reply.frame)
         return reply
 
     def info(self, *, timeout: float | None = None) -> ObjectInfo:
         """The worker's report on this object: frame, counters, the engine's info and stats."""
-        info = self._client._ask(self._client.keys.object_info(self.name), InfoRequest(self.name), ObjectInfo, timeout=timeout, target=self)
+        info = self._ask(self._client.keys.object_info(self.name), InfoRequest(self.name), ObjectInfo, timeout)
         self._saw(info.frame)
         return info
 
     def delete(self, *, timeout: float | None = None) -> int:
         """Delete the object on its worker; returns its last applied frame."""
-        deleted = self._client._ask(
-            self._client.keys.object_delete(self.name), DeleteRequest(self.name), Deleted, timeout=timeout, target=self
-        )
+        deleted = self._ask(self._client.keys.object_delete(self.name), DeleteRequest(self.name), Deleted, timeout)
         self._client._drop_publisher(self._client.keys.object_frame(self.name))
         return deleted.frame
+
+    def _ask(self, key: str, request: Message, expect: type[M], timeout: float | None) -> M:
+        return self._client._ask(key, request, expect, timeout=timeout, worker=self.worker, name=self.name)
 
     def _next_frame(self, vertices: np.ndarray) -> Frame:
         frame = Frame(self.name, self._frame + 1, vertices)

@@ -81,7 +81,11 @@ _DIMENSIONS: dict[str, tuple[str, int, str]] = {
     "H": ("max_slice_resolution", 1, "grid rows"),
     "W": ("max_slice_resolution", 1, "grid columns"),
 }
-_CANONICAL: dict[str, np.dtype] = {"float": np.dtype(np.float32), "index": np.dtype(np.int32), "level": np.dtype(np.uint8)}
+_CANONICAL: dict[str, np.dtype] = {
+    "float": np.dtype(np.float32),
+    "index": np.dtype(np.int32),
+    "level": np.dtype(np.uint8),
+}
 _LOCAL_KINDS: dict[str, str] = {"float": "fiu", "index": "iu", "level": "iu"}
 _WIRE_ACCEPTS: dict[str, tuple[WireDtype, ...]] = {
     "float": (WireDtype.FLOAT32, WireDtype.FLOAT64),
@@ -104,7 +108,9 @@ class _Slot:
         return "(" + ", ".join(str(dim) for dim in self.shape) + ("," if len(self.shape) == 1 else "") + ")"
 
 
-def _check_shapes(owner: str, slots: tuple[_Slot, ...], shapes: list[tuple[int, ...] | None], limits: Limits | None) -> None:
+def _check_shapes(
+    owner: str, slots: tuple[_Slot, ...], shapes: list[tuple[int, ...] | None], limits: Limits | None
+) -> None:
     """Shapes against the slots: axis count, fixed sizes, named sizes agreeing across arrays, and limits."""
     bound: dict[str, tuple[int, str]] = {}
     for slot, shape in zip(slots, shapes):
@@ -255,7 +261,9 @@ def _check_number(owner: str, name: str, value: object, *, positive: bool = Fals
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise InvalidOptionError(f"{owner}.{name} must be a number, got {_short(value)}")
     if not math.isfinite(value) or (positive and value <= 0):
-        raise InvalidOptionError(f"{owner}.{name} must be a finite{' positive' if positive else ''} number, got {value}")
+        raise InvalidOptionError(
+            f"{owner}.{name} must be a finite{' positive' if positive else ''} number, got {value}"
+        )
     return float(value)
 
 
@@ -633,7 +641,9 @@ class SliceReply(_Message):
         try:
             (u0, v0), (u1, v1) = self.extent
         except (TypeError, ValueError):
-            raise InvalidOptionError(f"{owner}.extent must be ((u_min, v_min), (u_max, v_max)), got {_short(self.extent)}") from None
+            raise InvalidOptionError(
+                f"{owner}.extent must be ((u_min, v_min), (u_max, v_max)), got {_short(self.extent)}"
+            ) from None
         low = (_check_number(owner, "extent", u0), _check_number(owner, "extent", v0))
         high = (_check_number(owner, "extent", u1), _check_number(owner, "extent", v1))
         _set(self, "extent", (low, high))
@@ -806,11 +816,15 @@ def decode(data: bytes | bytearray, expect: type[M], *, limits: Limits = DEFAULT
         if cls is not expect:
             raise WrongKindError(f"expected {owner}, got {cls.__name__}")
         if len(descriptors) != len(expect.SLOTS):
-            raise MalformedMessageError(f"{owner} carries {len(expect.SLOTS)} array slots; this one has {len(descriptors)}")
+            raise MalformedMessageError(
+                f"{owner} carries {len(expect.SLOTS)} array slots; this one has {len(descriptors)}"
+            )
         for slot, descriptor in zip(expect.SLOTS, descriptors):
             if descriptor.shape is not None and descriptor.dtype not in _WIRE_ACCEPTS[slot.element]:
                 accepted = " or ".join(str(NUMPY_DTYPES[code]) for code in _WIRE_ACCEPTS[slot.element])
-                raise DtypeError(f"{owner}.{slot.name} must be {accepted} on the wire, got {NUMPY_DTYPES[descriptor.dtype]}")
+                raise DtypeError(
+                    f"{owner}.{slot.name} must be {accepted} on the wire, got {NUMPY_DTYPES[descriptor.dtype]}"
+                )
         _check_shapes(owner, expect.SLOTS, [descriptor.shape for descriptor in descriptors], limits)
 
     raw = unpack(data, limits, inspect)

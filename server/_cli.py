@@ -15,20 +15,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--listen", action="append", metavar="ENDPOINT",
         help=f"Zenoh endpoint to listen on, repeatable (default for a router without --config: {DEFAULT_ENDPOINT})",
     )  # fmt: skip
-    parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="Zenoh endpoint to connect to, repeatable")
+    parser.add_argument(
+        "--connect", action="append", default=[], metavar="ENDPOINT", help="Zenoh endpoint to connect to, repeatable"
+    )
     parser.add_argument(
         "--mode", choices=("router", "peer", "client"), default="router",
         help="Zenoh mode: router (default, nothing else needs starting), or peer/client behind another router",
     )  # fmt: skip
-    parser.add_argument("--device", default=None, help="Warp device, e.g. cuda:0 or cpu (default: Warp's default device)")
-    parser.add_argument("--namespace", default="badf", help="key-expression prefix shared with the clients (default: badf)")
+    parser.add_argument(
+        "--device", default=None, help="Warp device, e.g. cuda:0 or cpu (default: Warp's default device)"
+    )
+    parser.add_argument(
+        "--namespace", default="badf", help="key-expression prefix shared with the clients (default: badf)"
+    )
     parser.add_argument(
         "--config", default=None, metavar="FILE",
         help="Zenoh JSON5 config file (TLS, authentication, access control); used as is, with the flags above on top "
         "(without it: multicast scouting and shared memory are off)",
     )  # fmt: skip
     parser.add_argument("--worker-id", default=None, help="this worker's id in key expressions (default: <host>-<pid>)")
-    parser.add_argument("--stats-interval", type=float, default=10.0, metavar="SECONDS", help="seconds between stats lines")
+    parser.add_argument(
+        "--stats-interval", type=float, default=10.0, metavar="SECONDS", help="seconds between stats lines"
+    )
 
 
 def settings_from(args: argparse.Namespace) -> WorkerSettings:

@@ -4,7 +4,9 @@ Zenoh callbacks only check sizes and hand work over: a streamed or blocking fram
 frame (the replaced one is counted as dropped), other requests join a bounded queue. The object's thread
 alternates between applying the pending frame and answering one waiting request, so queries always see a
 fully applied frame, a stream cannot starve queries, and a slow object delays only its own requests.
-Info requests are answered at once from a snapshot that the object's thread keeps fresh.
+Info requests are answered at once: the frame and counters are current; the engine's own info and stats
+are a snapshot the object's thread refreshes at most every 0.25 s (on a GPU, reading the engine's stage
+timers synchronises the device, which would stall other objects if it happened on every frame).
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ from badf.server._replies import answer, engine_errors, refuse, request_bytes
 
 log = logging.getLogger("badf.server")
 
-# How often, at most, the object's thread refreshes the engine's stats for info replies.
+# How often, at most, the object's thread refreshes the engine's info and stats for info replies.
 _SNAPSHOT_PERIOD_S = 0.25
 
 
@@ -122,6 +124,7 @@ class ServedObject:
         self._field_info: dict[str, Any] = {}
         self._field_stats: dict[str, Any] = {}
         self._snapshot_at = 0.0
+        self._snapshot_stale = False
         self._lock = threading.Condition()
         self._pending: _PendingFrame | None = None
         self._waiting: deque[_Request] = deque()
@@ -262,7 +265,9 @@ class ServedObject:
         with self._lock:
             refusal = self._closing
             if refusal is None and len(self._waiting) >= self._max_waiting:
-                refusal = WorkerBusyError(f"{len(self._waiting)} requests for {self.name!r} are already waiting; try again")
+                refusal = WorkerBusyError(
+                    f"{len(self._waiting)} requests for {self.name!r} are already waiting; try again"
+                )
             if refusal is None:
                 self._waiting.append(request)
                 self._lock.notify_all()
@@ -274,31 +279,46 @@ class ServedObject:
     def _run(self) -> None:
         while True:
             with self._lock:
-                self._lock.wait_for(lambda: self._pending or self._waiting or self._closing)
-                if self._closing is not None:
+                timeout = None
+                if self._snapshot_stale:
+                    timeout = max(0.0, self._snapshot_at + _SNAPSHOT_PERIOD_S - time.monotonic())
+                if not self._lock.wait_for(self._has_work, timeout=timeout):
+                    frame = request = None  # idle with a stale snapshot: refresh it below
+                elif self._closing is not None:
                     break
-                frame, self._pending = self._pending, None
-                request = self._waiting.popleft() if self._waiting else None
+                else:
+                    frame, self._pending = self._pending, None
+                    request = self._waiting.popleft() if self._waiting else None
+            if frame is None and request is None:
+                try:
+                    self._refresh_snapshot(force=True)
+                except Exception:  # noqa: BLE001 - a failing report must not end the object's thread
+                    log.exception("reading the engine's info and stats for %r failed", self.name)
             if frame is not None:
                 self._apply(frame)
             if request is not None:
                 request.run()
         self._fail_waiting()
 
+    def _has_work(self) -> bool:
+        return bool(self._pending or self._waiting or self._closing)
+
     def _apply(self, pending: _PendingFrame) -> None:
+        def note(error: BadfError) -> None:
+            if isinstance(error, StaleFrameError):
+                with self._lock:
+                    self._counters.frames_dropped += 1
+            else:
+                self._note_error(error, frame=True, answered=pending.query is not None)
+
         if pending.query is not None:
-            error = answer(pending.query, self._keys.object_frame(self.name), lambda: self._apply_frame(pending.payload))
-        else:
-            try:
-                self._apply_frame(pending.payload)
-                error = None
-            except BadfError as raised:
-                error = raised
-        if isinstance(error, StaleFrameError):
-            with self._lock:
-                self._counters.frames_dropped += 1
-        elif error is not None:
-            self._note_error(error, frame=True, answered=pending.query is not None)
+            key = self._keys.object_frame(self.name)
+            answer(pending.query, key, lambda: self._apply_frame(pending.payload), on_error=note)
+            return
+        try:
+            self._apply_frame(pending.payload)
+        except BadfError as error:
+            note(error)
 
     def _apply_frame(self, payload: zenoh.ZBytes | None) -> FrameAck:
         frame = decode(request_bytes(payload, self._limits), Frame, limits=self._limits)
@@ -318,9 +338,8 @@ class ServedObject:
         return FrameAck(self.name, frame.frame)
 
     def _answer_query(self, query: zenoh.Query) -> None:
-        error = answer(query, self._keys.object_query(self.name), lambda: self._run_query(query.payload))
-        if error is not None:
-            self._note_error(error, answered=True)
+        key = self._keys.object_query(self.name)
+        answer(query, key, lambda: self._run_query(query.payload), on_error=self._note_answered)
 
     def _run_query(self, payload: zenoh.ZBytes | None) -> QueryReply:
         request = decode(request_bytes(payload, self._limits), QueryRequest, limits=self._limits)
@@ -336,9 +355,8 @@ class ServedObject:
         return reply
 
     def _answer_slice(self, query: zenoh.Query) -> None:
-        error = answer(query, self._keys.object_slice(self.name), lambda: self._run_slice(query.payload))
-        if error is not None:
-            self._note_error(error, answered=True)
+        key = self._keys.object_slice(self.name)
+        answer(query, key, lambda: self._run_slice(query.payload), on_error=self._note_answered)
 
     def _run_slice(self, payload: zenoh.ZBytes | None) -> SliceReply:
         request = decode(request_bytes(payload, self._limits), SliceRequest, limits=self._limits)
@@ -391,6 +409,9 @@ class ServedObject:
         if name != self.name:
             raise MetadataError(f"the message names object {name!r} but was sent to {self.name!r}")
 
+    def _note_answered(self, error: BadfError) -> None:
+        self._note_error(error, answered=True)
+
     def _note_error(self, error: BadfError, *, answered: bool, frame: bool = False) -> None:
         """Count an error; log it when nobody was answered (a streamed frame), once per distinct message."""
         with self._lock:
@@ -405,10 +426,12 @@ class ServedObject:
             log.debug("request for %r answered with %s: %s", self.name, error.code.name, error.message)
 
     def _refresh_snapshot(self, *, force: bool = False) -> None:
+        """Read the engine's info and stats, unless the last read is recent (then mark the snapshot stale)."""
         now = time.monotonic()
         if not force and now - self._snapshot_at < _SNAPSHOT_PERIOD_S:
+            self._snapshot_stale = True
             return
         info, stats = self._field.info(), self._field.stats()
         with self._lock:
             self._field_info, self._field_stats, self._snapshot_at = info, stats, now
-
+            self._snapshot_stale = False

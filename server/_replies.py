@@ -39,11 +39,17 @@ def reply_error(query: zenoh.Query, error: BadfError) -> None:
         log.debug("could not send an error reply: %s", failure)
 
 
-def answer(query: zenoh.Query, key: str, work: Callable[[], Message]) -> BadfError | None:
+def answer(
+    query: zenoh.Query,
+    key: str,
+    work: Callable[[], Message],
+    on_error: Callable[[BadfError], None] | None = None,
+) -> None:
     """Reply to `query` on `key` with what `work` returns, or with the error it raised; then finish the query.
 
-    Returns the error sent, if any, so the caller can count it. An exception that is not a BadfError is a
-    bug on this side: it is logged with its traceback and answered as an internal error.
+    `on_error` sees the error before the reply goes out, so whoever gets the error reply also finds it
+    counted. An exception that is not a BadfError is a bug on this side: it is logged with its traceback
+    and answered as an internal error.
     """
     error: BadfError | None = None
     try:
@@ -53,6 +59,8 @@ def answer(query: zenoh.Query, key: str, work: Callable[[], Message]) -> BadfErr
     except Exception as raised:  # noqa: BLE001 - the worker must answer and keep serving
         log.exception("internal error while answering %s", key)
         error = InternalWorkerError(f"internal error on the worker: {type(raised).__name__}: {raised}")
+    if error is not None and on_error is not None:
+        on_error(error)
     try:
         if error is None:
             try:
@@ -63,7 +71,6 @@ def answer(query: zenoh.Query, key: str, work: Callable[[], Message]) -> BadfErr
             reply_error(query, error)
     finally:
         query.drop()
-    return error
 
 
 def refuse(query: zenoh.Query, error: BadfError) -> None:

@@ -117,7 +117,9 @@ def engine_field_builder(device: str | None) -> tuple[FieldBuilder, str]:
 class Worker:
     """The objects of one worker and its worker-level keys. `start` declares, `close` undeclares."""
 
-    def __init__(self, session: zenoh.Session, settings: WorkerSettings, build_field: FieldBuilder, device: str) -> None:
+    def __init__(
+        self, session: zenoh.Session, settings: WorkerSettings, build_field: FieldBuilder, device: str
+    ) -> None:
         self.settings = settings
         self.device = device
         self._session = session
@@ -157,13 +159,14 @@ class Worker:
         with self._lock:
             self._closing = True
             waiting, self._registrations = list(self._registrations), deque()
-            objects = list(self._objects.values())
-            self._objects.clear()
             self._lock.notify_all()
         for query in waiting:
             refuse(query, shutting_down)
         if self._registrar.is_alive():
-            self._registrar.join()
+            self._registrar.join()  # a build in progress finishes, and is refused below
+        with self._lock:
+            objects = list(self._objects.values())
+            self._objects.clear()
         for served in objects:
             served.close(shutting_down)
 
@@ -179,7 +182,9 @@ class Worker:
             if self._closing:
                 refusal = WorkerUnavailableError(f"worker {self.worker_id} is shutting down")
             elif len(self._registrations) >= self.settings.max_waiting_registrations:
-                refusal = WorkerBusyError(f"worker {self.worker_id} has {len(self._registrations)} registrations waiting")
+                refusal = WorkerBusyError(
+                    f"worker {self.worker_id} has {len(self._registrations)} registrations waiting"
+                )
             else:
                 self._registrations.append(query)
                 self._lock.notify_all()
@@ -201,7 +206,9 @@ class Worker:
         with self._lock:
             existing = self._objects.get(request.name)
         if existing is not None and not request.replace:
-            raise ObjectExistsError(f"object {request.name!r} already exists on worker {self.worker_id}; pass replace=True to swap it")
+            raise ObjectExistsError(
+                f"object {request.name!r} already exists on worker {self.worker_id}; pass replace=True to swap it"
+            )
         started = time.perf_counter()
         with engine_errors():
             built = self._build_field(request.vertices, request.faces, request.options)
@@ -221,6 +228,8 @@ class Worker:
                 on_deleted=self._forget,
             )
             with self._lock:
+                if self._closing:
+                    raise WorkerUnavailableError(f"worker {self.worker_id} is shutting down")
                 self._objects[request.name] = served
             served.start(self._session)
             info = served.info()

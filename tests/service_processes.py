@@ -52,15 +52,16 @@ def stop(process: multiprocessing.Process) -> None:
 
 
 def stream_until_killed(endpoint: str, name: str, path: str, streamed: multiprocessing.synchronize.Event) -> None:
-    """A client process: register `name` from a sequence file and stream its frames round and round.
+    """A client process: register `name` from a sequence file, apply frame 1, then stream round and round.
 
-    Sets `streamed` after its first 20 frames; bounded at 100,000 frames in case nobody kills it.
+    Sets `streamed` after 20 streamed frames; bounded at 100,000 frames in case nobody kills it.
     """
     data = np.load(path)
     frames, faces = data["vertices"], data["faces"]
     with Client(endpoint, timeout=60) as client:
         obj = client.register(name, frames[0], faces)
-        for count in range(1, 100_000):
+        obj.update(frames[1])
+        for count in range(2, 100_000):
             obj.stream(frames[count % len(frames)])
-            if count == 20:
+            if count == 21:
                 streamed.set()

@@ -50,7 +50,9 @@ class StandInField:
         self.frame += 1
         return self.frame
 
-    def query(self, points: np.ndarray, *, mode: str = "adf", outputs: tuple[str, ...] = ("distance",)) -> StandInResult:
+    def query(
+        self, points: np.ndarray, *, mode: str = "adf", outputs: tuple[str, ...] = ("distance",)
+    ) -> StandInResult:
         nearest = nearest_vertex(points, self._vertices)
         result = StandInResult(self.frame)
         if "distance" in outputs:
@@ -59,7 +61,9 @@ class StandInField:
             result.closest_point = self._vertices[nearest]
         if "normal" in outputs:
             offset = points - self._vertices[nearest]
-            result.normal = (offset / np.maximum(np.linalg.norm(offset, axis=1, keepdims=True), 1e-12)).astype(np.float32)
+            result.normal = (offset / np.maximum(np.linalg.norm(offset, axis=1, keepdims=True), 1e-12)).astype(
+                np.float32
+            )
         if "face" in outputs:
             result.face = np.zeros(len(points), dtype=np.int32)
         return result

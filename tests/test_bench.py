@@ -15,8 +15,22 @@ def test_service_benchmark_runs(tmp_path: Path) -> None:
     parser = argparse.ArgumentParser()
     _cli.add_arguments(parser)
     args = parser.parse_args(
-        ["service", "--small", "--device", "cpu", "--mesh", str(meshes.data_file("spot")), "--round-trips", "3",
-         "--repeats", "2", "--batches", "256,1024", "--out", str(tmp_path)]  # fmt: skip
+        [
+            "service",
+            "--small",
+            "--device",
+            "cpu",
+            "--mesh",
+            str(meshes.data_file("spot")),
+            "--round-trips",
+            "3",
+            "--repeats",
+            "2",
+            "--batches",
+            "256,1024",
+            "--out",
+            str(tmp_path),
+        ]  # fmt: skip
     )
     assert _cli.run(args) == 0
     report = json.loads((tmp_path / "service.json").read_text())

@@ -68,20 +68,42 @@ def samples() -> dict[type, object]:
     return {
         RegisterRequest: RegisterRequest("bunny", VERTICES, FACES, options, frame=4, replace=True),
         ObjectInfo: ObjectInfo(
-            "bunny", "w1", 4, 12, 20, options, frames_applied=3, frames_dropped=1, frames_rejected=2,
-            queries_answered=5, points_answered=99, last_error="boom",
-            field_info={"sign": "pseudonormal", "domain": [[0, 0, 0], [1, 1, 1]]}, field_stats={"update_ms": 0.5},
+            "bunny",
+            "w1",
+            4,
+            12,
+            20,
+            options,
+            frames_applied=3,
+            frames_dropped=1,
+            frames_rejected=2,
+            queries_answered=5,
+            points_answered=99,
+            last_error="boom",
+            field_info={"sign": "pseudonormal", "domain": [[0, 0, 0], [1, 1, 1]]},
+            field_stats={"update_ms": 0.5},
         ),  # fmt: skip
         Frame: Frame("bunny", 7, VERTICES),
         FrameAck: FrameAck("bunny", 7),
         QueryRequest: QueryRequest("bunny", POINTS, mode="exact", outputs=("distance", "normal", "face")),
         QueryReply: QueryReply(
-            "bunny", 7, distance=POINTS[:, 0].copy(), closest_point=POINTS * 2, normal=POINTS / 3, face=np.arange(9, dtype=np.int32)
+            "bunny",
+            7,
+            distance=POINTS[:, 0].copy(),
+            closest_point=POINTS * 2,
+            normal=POINTS / 3,
+            face=np.arange(9, dtype=np.int32),
         ),
         SliceRequest: SliceRequest("bunny", "y", -0.25, resolution=64, levels=(2, 5), cells=True, corners=True),
         SliceReply: SliceReply(
-            "bunny", 7, "y", -0.25, ((0.0, -1.0), (1.0, 2.0)), rng.normal(size=(4, 5)).astype(np.float32),
-            cell_boxes=rng.normal(size=(6, 2, 3)).astype(np.float32), cell_levels=np.arange(6, dtype=np.uint8),
+            "bunny",
+            7,
+            "y",
+            -0.25,
+            ((0.0, -1.0), (1.0, 2.0)),
+            rng.normal(size=(4, 5)).astype(np.float32),
+            cell_boxes=rng.normal(size=(6, 2, 3)).astype(np.float32),
+            cell_levels=np.arange(6, dtype=np.uint8),
             corner_points=rng.normal(size=(8, 3)).astype(np.float32),
         ),  # fmt: skip
         InfoRequest: InfoRequest("bunny"),
@@ -244,7 +266,10 @@ def test_face_index_out_of_range() -> None:
     too_big = FACES.astype(np.int64)
     too_big[0, 0] = 2**40
     with pytest.raises(IndexRangeError, match="int32"):
-        decode(pack(MessageKind.REGISTER, RegisterRequest("a", VERTICES, FACES).metadata(), [VERTICES, too_big]), RegisterRequest)
+        decode(
+            pack(MessageKind.REGISTER, RegisterRequest("a", VERTICES, FACES).metadata(), [VERTICES, too_big]),
+            RegisterRequest,
+        )
 
 
 def test_limits_from_the_header() -> None:

@@ -59,7 +59,9 @@ POINTS = rng.normal(size=(25, 3)).astype(np.float32)
 class ThreadWorker:
     """A worker serving StandInFields from a thread of this process."""
 
-    def __init__(self, endpoint: str, *, worker_id: str = "w1", mode: str = "router", connect: tuple[str, ...] = (), **settings):
+    def __init__(
+        self, endpoint: str, *, worker_id: str = "w1", mode: str = "router", connect: tuple[str, ...] = (), **settings
+    ):
         listen = (endpoint,) if mode == "router" and endpoint else None
         self.settings = WorkerSettings(worker_id=worker_id, mode=mode, listen=listen, connect=connect, **settings)
         self.fields: list[StandInField] = []
@@ -172,6 +174,13 @@ def test_stream_keeps_only_the_newest_pending_frame(worker: ThreadWorker, client
     np.testing.assert_allclose(obj.query(POINTS).distance, expected_distance(POINTS, VERTICES + 11), rtol=1e-6)
 
 
+def test_engine_stats_catch_up_after_a_burst(worker: ThreadWorker, client: Client) -> None:
+    obj = client.register("blob", VERTICES, FACES)
+    for step in range(1, 6):
+        obj.update(VERTICES + step)
+    wait_until(lambda: obj.info().field_stats == {"frame": 5}, what="the engine's stats of the last frame")
+
+
 def test_a_busy_object_stalls_no_other(worker: ThreadWorker, client: Client) -> None:
     slow = client.register("slow", VERTICES, FACES)
     fast = client.register("fast", VERTICES * 2, FACES)
@@ -210,7 +219,9 @@ def _queue_is_full(session: zenoh.Session, payload: bytearray) -> bool:
     return True
 
 
-def test_bad_requests_get_specific_errors_and_change_nothing(worker: ThreadWorker, client: Client, raw: zenoh.Session) -> None:
+def test_bad_requests_get_specific_errors_and_change_nothing(
+    worker: ThreadWorker, client: Client, raw: zenoh.Session
+) -> None:
     obj = client.register("blob", VERTICES, FACES)
     obj.update(VERTICES + 1)
     before = obj.query(POINTS, outputs=("distance", "normal"))
@@ -315,7 +326,10 @@ def test_a_stuck_worker_gives_a_timeout(worker: ThreadWorker, client: Client) ->
 
 
 def test_two_workers_share_a_namespace(endpoint: str) -> None:
-    with ThreadWorker(endpoint, worker_id="w1"), ThreadWorker("", worker_id="w2", mode="peer", connect=(endpoint,)) as second:
+    with (
+        ThreadWorker(endpoint, worker_id="w1"),
+        ThreadWorker("", worker_id="w2", mode="peer", connect=(endpoint,)) as second,
+    ):
         with Client(endpoint, timeout=10) as client:
             wait_until(lambda: len(client.workers()) == 2, what="both workers")
             first = client.register("a", VERTICES, FACES)
@@ -336,9 +350,13 @@ def test_stats_line_counts_what_happened(worker: ThreadWorker, client: Client, r
     obj = client.register("blob", VERTICES, FACES)
     obj.update(VERTICES + 1)
     obj.query(POINTS)
-    assert isinstance(raw_error(raw, KEYS.object_frame("blob"), encode(Frame("blob", 9, VERTICES[:3]))), VertexCountMismatchError)
+    assert isinstance(
+        raw_error(raw, KEYS.object_frame("blob"), encode(Frame("blob", 9, VERTICES[:3]))), VertexCountMismatchError
+    )
     line = worker.running.stats_line()
-    assert "1 objects" in line and "frames 1 applied" in line and "1 rejected" in line and "queries 1 (25 points)" in line
+    assert (
+        "1 objects" in line and "frames 1 applied" in line and "1 rejected" in line and "queries 1 (25 points)" in line
+    )
 
 
 def test_serve_flags_become_settings(tmp_path) -> None:
@@ -353,11 +371,26 @@ def test_serve_flags_become_settings(tmp_path) -> None:
     assert settings.zenoh_config().get_json("listen/endpoints") == '["tcp/127.0.0.1:7447"]'
     assert settings.zenoh_config().get_json("transport/shared_memory/enabled") == "false"
     args = parser.parse_args(
-        ["--listen", "tcp/127.0.0.1:9000", "--connect", "tcp/10.0.0.1:7447", "--namespace", "lab/a", "--worker-id", "gpu-3", "--device", "cuda:1"]
+        [
+            "--listen",
+            "tcp/127.0.0.1:9000",
+            "--connect",
+            "tcp/10.0.0.1:7447",
+            "--namespace",
+            "lab/a",
+            "--worker-id",
+            "gpu-3",
+            "--device",
+            "cuda:1",
+        ]
     )
     settings = _cli.settings_from(args)
     assert (settings.listen, settings.connect, settings.namespace, settings.worker_id, settings.device) == (
-        ("tcp/127.0.0.1:9000",), ("tcp/10.0.0.1:7447",), "lab/a", "gpu-3", "cuda:1"
+        ("tcp/127.0.0.1:9000",),
+        ("tcp/10.0.0.1:7447",),
+        "lab/a",
+        "gpu-3",
+        "cuda:1",
     )
     assert _cli.run(parser.parse_args(["--worker-id", "no/slashes"])) == 2
 
