@@ -1,23 +1,23 @@
-"""`badf bench NAME`: the project's benchmarks, each a module with `add_arguments(parser)` and `run(args)`."""
+"""`badf bench NAME [flags]`: run one benchmark (engine, accuracy, service)."""
 
 from __future__ import annotations
 
 import argparse
 import importlib
 
-# name -> (module, one-line description)
-_BENCHMARKS: dict[str, tuple[str, str]] = {
-    "service": ("badf.bench._service", "round trip (frame + query) and query throughput, service beside in-process"),
+_BENCHMARKS = {
+    "engine": ("badf.bench.engine", "per-stage build/update times, memory, and the dense-grid baseline"),
+    "service": ("badf.bench.service", "frame + query round trip and query throughput, service beside in-process"),
 }
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    benchmarks = parser.add_subparsers(dest="benchmark", required=True, metavar="BENCHMARK")
-    for name, (module, description) in _BENCHMARKS.items():
-        importlib.import_module(module).add_arguments(
-            benchmarks.add_parser(name, help=description, description=description)
-        )
+    parser.add_argument("name", choices=sorted(_BENCHMARKS), help="; ".join(f"{k}: {v[1]}" for k, v in _BENCHMARKS.items()))
+    parser.add_argument("rest", nargs=argparse.REMAINDER, help="flags of that benchmark (see badf bench NAME --help)")
 
 
 def run(args: argparse.Namespace) -> int:
-    return int(importlib.import_module(_BENCHMARKS[args.benchmark][0]).run(args) or 0)
+    module = importlib.import_module(_BENCHMARKS[args.name][0])
+    sub = argparse.ArgumentParser(prog=f"badf bench {args.name}", description=_BENCHMARKS[args.name][1])
+    module.add_arguments(sub)
+    return int(module.run(sub.parse_args(args.rest)) or 0)

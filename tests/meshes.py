@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import pathlib
 
 import numpy as np
@@ -10,7 +11,8 @@ import trimesh
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 BUNDLED = ROOT / "tests" / "data"
-SHARED = ROOT.parent / "shared" / "data"
+# the shared data folder beside the checkout; BADF_SHARED_DATA points elsewhere (e.g. on a GPU machine)
+SHARED = pathlib.Path(os.environ.get("BADF_SHARED_DATA", ROOT.parent / "shared" / "data"))
 
 
 def data_file(name: str) -> pathlib.Path:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 # A buffer that must grow gets this much headroom, so a slowly growing octree does not reallocate each frame.
@@ -30,3 +31,52 @@ class DeviceBuffers:
 
     def nbytes(self) -> int:
         return sum(arr.capacity for arr in self._arrays.values())
+
+    def nbytes_by_role(self) -> dict[str, int]:
+        """Bytes by what they hold: the field a query reads (octree links, corner table and values), the BVH,
+        the mesh and its sign data, coherence state, query batches, and build scratch (the rest)."""
+        roles = {"field": 0, "bvh": 0, "mesh": 0, "coherence": 0, "queries": 0, "scratch": 0}
+        for name, arr in self._arrays.items():
+            roles[_role(name)] += arr.capacity
+        return roles
+
+
+_FIELD = {"corner.value", "corner.leaf", "oct.corner_slot", "oct.child_mask", "oct.first_child"}
+
+
+def _role(name: str) -> str:
+    if name in _FIELD:
+        return "field"
+    if name.startswith("bvh.build."):
+        return "scratch"
+    if name.startswith("bvh."):
+        return "bvh"
+    if name.startswith(("mesh.", "sign.")):
+        return "mesh"
+    if name.startswith("corner.prev"):
+        return "coherence"
+    if name.startswith("query."):
+        return "queries"
+    return "scratch"
+
+
+class HostReadback:
+    """Reads a few integers back from the device through one small pinned buffer (no allocation per frame)."""
+
+    def __init__(self, device: wp.Device):
+        self.device = device
+        self._host = wp.empty(64, dtype=wp.int32, device="cpu", pinned=device.is_cuda)
+
+    def read(self, arr: wp.array, index: int) -> int:
+        wp.copy(self._host, arr, dest_offset=0, src_offset=index, count=1)
+        self._wait()
+        return int(self._host.numpy()[0])
+
+    def read_array(self, arr: wp.array, count: int) -> np.ndarray:
+        wp.copy(self._host, arr, count=count)
+        self._wait()
+        return self._host.numpy()[:count].copy()
+
+    def _wait(self) -> None:
+        if self.device.is_cuda:
+            wp.synchronize_stream(wp.get_stream(self.device))

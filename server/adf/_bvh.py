@@ -3,6 +3,11 @@
 Nodes live in one index space of 2n - 1: internal nodes 0..n-2 (0 is the root), then leaf k at n - 1 + k,
 where leaf k is the k-th triangle in Morton order. The same radix-tree kernel builds the hierarchy the
 octree is read from (paper, Algorithm 1), over the sorted surface-cell keys instead of triangle keys.
+
+For the searches each internal node i keeps its two children in slots 2i and 2i + 1: the child's box, its
+node id, and the range of sorted triangles under it. One visit reads both children's boxes side by side,
+and a child with at most LEAF_SIZE triangles is searched directly over its contiguous triangles (the
+tree stays binary, one triangle per leaf, as the octree derivation needs; the searches just stop early).
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ BVH_CODE_LEVELS = 10
 _CODE_SHIFT = wp.constant(32)
 _FAR_FIELD = wp.constant(WINDING_FAR_FIELD)
 _INV_FOUR_PI = wp.constant(1.0 / (4.0 * math.pi))
+LEAF_SIZE = wp.constant(4)
 
 
 @wp.struct
@@ -42,10 +48,11 @@ class BvhView:
     """What the query kernels read of a BVH."""
 
     internal_count: int
-    lower: wp.array(dtype=wp.vec3)  # (2n-1,) node boxes
-    upper: wp.array(dtype=wp.vec3)
-    left: wp.array(dtype=wp.int32)  # (n-1,) children of internal nodes
-    right: wp.array(dtype=wp.int32)
+    slot_lower: wp.array(dtype=wp.vec3)  # (2(n-1),) box of child s of node s // 2
+    slot_upper: wp.array(dtype=wp.vec3)
+    slot_child: wp.array(dtype=wp.int32)  # node id of that child
+    slot_first: wp.array(dtype=wp.int32)  # first sorted triangle under it
+    slot_count: wp.array(dtype=wp.int32)  # triangles under it
     tri_a: wp.array(dtype=wp.vec3)  # (n,) triangle corners of each leaf, in Morton order
     tri_b: wp.array(dtype=wp.vec3)
     tri_c: wp.array(dtype=wp.vec3)
@@ -55,8 +62,8 @@ class BvhView:
     # Fast-winding-number moments per node (empty arrays when the sign does not need them).
     area_normal: wp.array(dtype=wp.vec3)  # sum of area-weighted normals
     centre: wp.array(dtype=wp.vec3)  # area-weighted centroid
-    area: wp.array(dtype=wp.float32)
     radius: wp.array(dtype=wp.float32)  # bounds every triangle of the node around `centre`
+    area: wp.array(dtype=wp.float32)
 
 
 class Bvh:
@@ -67,28 +74,28 @@ class Bvh:
         self.internal_count = face_count - 1
         self.with_moments = with_moments
         self.device = buffers.device
-        n, nodes = face_count, 2 * face_count - 1
+        n, nodes, slots = face_count, 2 * face_count - 1, max(2 * (face_count - 1), 1)
         b = buffers
         # radix_sort_pairs needs room for twice the count
         self.sort_keys = b.array("bvh.sort_keys", 2 * n, wp.int64)
         self.sort_faces = b.array("bvh.sort_faces", 2 * n, wp.int32)
         self.face_leaf = b.array("bvh.face_leaf", n, wp.int32)  # inverse of sort_faces
-        self.parent = b.array("bvh.parent", nodes, wp.int32)
-        self.left = b.array("bvh.left", max(n - 1, 1), wp.int32)
-        self.right = b.array("bvh.right", max(n - 1, 1), wp.int32)
-        self.first = b.array("bvh.first", max(n - 1, 1), wp.int32)
-        self.prefix = b.array("bvh.prefix", max(n - 1, 1), wp.int32)
+        self.parent_slot = b.array("bvh.parent_slot", nodes, wp.int32)
         self.visits = b.array("bvh.visits", max(n - 1, 1), wp.int32)
-        self.lower = b.array("bvh.lower", nodes, wp.vec3)
-        self.upper = b.array("bvh.upper", nodes, wp.vec3)
+        self.slot_lower = b.array("bvh.slot_lower", slots, wp.vec3)
+        self.slot_upper = b.array("bvh.slot_upper", slots, wp.vec3)
+        self.slot_child = b.array("bvh.slot_child", slots, wp.int32)
+        self.slot_first = b.array("bvh.slot_first", slots, wp.int32)
+        self.slot_count = b.array("bvh.slot_count", slots, wp.int32)
         self.tri_a = b.array("bvh.tri_a", n, wp.vec3)
         self.tri_b = b.array("bvh.tri_b", n, wp.vec3)
         self.tri_c = b.array("bvh.tri_c", n, wp.vec3)
         moment_count = nodes if with_moments else 1
         self.area_normal = b.array("bvh.area_normal", moment_count, wp.vec3)
         self.centre = b.array("bvh.centre", moment_count, wp.vec3)
-        self.area = b.array("bvh.area", moment_count, wp.float32)
         self.radius = b.array("bvh.radius", moment_count, wp.float32)
+        self.area = b.array("bvh.area", moment_count, wp.float32)
+        self._buffers = b
 
     def build(self, vertices: wp.array, faces: wp.array, origin: wp.vec3, side: float) -> None:
         """Sort the triangles by the Morton code of their centroid in the domain and link the tree."""
@@ -103,30 +110,47 @@ class Bvh:
         )
         wp.utils.radix_sort_pairs(self.sort_keys, self.sort_faces, n)
         wp.launch(_invert_order, dim=n, inputs=[self.sort_faces], outputs=[self.face_leaf], device=self.device)
-        link_radix_tree(self.sort_keys, n, self.parent, self.left, self.right, self.first, self.prefix)
+        self.parent_slot.fill_(-1)
+        if n > 1:
+            b = self._buffers
+            left = b.ensure("bvh.build.left", n - 1, wp.int32)
+            right = b.ensure("bvh.build.right", n - 1, wp.int32)
+            first = b.ensure("bvh.build.first", n - 1, wp.int32)
+            last = b.ensure("bvh.build.last", n - 1, wp.int32)
+            prefix = b.ensure("bvh.build.prefix", n - 1, wp.int32)
+            parent = b.ensure("bvh.build.parent", 2 * n - 1, wp.int32)
+            link_radix_tree(self.sort_keys, n, parent, left, right, first, prefix, last)
+            wp.launch(
+                _link_slots,
+                dim=n - 1,
+                inputs=[left, right, first, last, n - 1],
+                outputs=[self.slot_child, self.slot_first, self.slot_count, self.parent_slot],
+                device=self.device,
+            )
 
     def refit(self, vertices: wp.array, faces: wp.array) -> None:
-        """Recompute every node's box (and winding moments) bottom-up from the current vertices."""
+        """Recompute every child box (and winding moments) bottom-up from the current vertices."""
         self.visits.zero_()
         wp.launch(
             _refit,
             dim=self.face_count,
-            inputs=[vertices, faces, self.sort_faces, self.parent, self.left, self.right, self.internal_count,
+            inputs=[vertices, faces, self.sort_faces, self.parent_slot, self.slot_child, self.internal_count,
                     1 if self.with_moments else 0],
-            outputs=[self.lower, self.upper, self.tri_a, self.tri_b, self.tri_c, self.visits,
-                     self.area_normal, self.centre, self.area, self.radius],
+            outputs=[self.slot_lower, self.slot_upper, self.tri_a, self.tri_b, self.tri_c, self.visits,
+                     self.area_normal, self.centre, self.radius, self.area],
             device=self.device,
         )
 
     def view(self) -> BvhView:
         v = BvhView()
         v.internal_count = self.internal_count
-        v.lower, v.upper, v.left, v.right = self.lower, self.upper, self.left, self.right
+        v.slot_lower, v.slot_upper = self.slot_lower, self.slot_upper
+        v.slot_child, v.slot_first, v.slot_count = self.slot_child, self.slot_first, self.slot_count
         v.tri_a, v.tri_b, v.tri_c = self.tri_a, self.tri_b, self.tri_c
         v.leaf_face = self.sort_faces
         v.face_leaf = self.face_leaf
         v.leaf_key = self.sort_keys
-        v.area_normal, v.centre, v.area, v.radius = self.area_normal, self.centre, self.area, self.radius
+        v.area_normal, v.centre, v.radius, v.area = self.area_normal, self.centre, self.radius, self.area
         return v
 
     def leaf_faces(self) -> np.ndarray:
@@ -134,13 +158,20 @@ class Bvh:
 
 
 def link_radix_tree(
-    keys: wp.array, count: int, parent: wp.array, left: wp.array, right: wp.array, first: wp.array, prefix: wp.array
+    keys: wp.array,
+    count: int,
+    parent: wp.array,
+    left: wp.array,
+    right: wp.array,
+    first: wp.array,
+    prefix: wp.array,
+    last: wp.array | None = None,
 ) -> None:
     """Karras's parallel radix tree over `count` sorted, unique int64 keys.
 
-    Fills, for internal node i: children `left[i]`, `right[i]` (leaf k as count - 1 + k), the first key of its
-    range `first[i]` and its common-prefix length in code bits `prefix[i]`; and `parent` of every node
-    (-1 for the root).
+    Fills, for internal node i: children `left[i]`, `right[i]` (leaf k as count - 1 + k), the range of keys
+    under it `first[i]`..`last[i]`, its common-prefix length in code bits `prefix[i]`; and `parent` of every
+    node (-1 for the root).
     """
     parent.fill_(-1)
     if count > 1:
@@ -148,7 +179,7 @@ def link_radix_tree(
             _link_radix_tree,
             dim=count - 1,
             inputs=[keys, count],
-            outputs=[parent, left, right, first, prefix],
+            outputs=[parent, left, right, first, prefix, last if last is not None else first],
             device=keys.device,
         )
 
@@ -176,18 +207,24 @@ def leaf_distance_sq(bvh: BvhView, leaf: int, p: wp.vec3) -> float:
 
 
 @wp.func
+def _nearest_in_range(bvh: BvhView, p: wp.vec3, first: int, count: int, best_leaf: int, best_sq: float):
+    for leaf in range(first, first + count):
+        d_sq = leaf_distance_sq(bvh, leaf, p)
+        if d_sq < best_sq:
+            best_sq = d_sq
+            best_leaf = leaf
+    return best_leaf, best_sq
+
+
+@wp.func
 def nearest_leaf(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float):
     """Nearest leaf to p among those strictly closer than sqrt(best_sq); (best_leaf, best_sq) if none.
 
-    The paper's Algorithm 2: depth-first, nearer child first, children that are leaves tested at once,
-    pruning every box no closer than the best so far. A good starting bound (coherence) prunes early.
+    The paper's Algorithm 2: depth-first, nearer child first, small subtrees searched at once, pruning
+    every box no closer than the best so far. A good starting bound (coherence) prunes early.
     """
-    n_internal = bvh.internal_count
-    if n_internal == 0:
-        d_sq = leaf_distance_sq(bvh, 0, p)
-        if d_sq < best_sq:
-            return 0, d_sq
-        return best_leaf, best_sq
+    if bvh.internal_count == 0:
+        return _nearest_in_range(bvh, p, 0, 1, best_leaf, best_sq)
     nodes = stack_int()
     bounds = stack_float()
     nodes[0] = 0
@@ -197,70 +234,64 @@ def nearest_leaf(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float):
         count -= 1
         if bounds[count] >= best_sq:
             continue
-        node = nodes[count]
-        l = bvh.left[node]
-        r = bvh.right[node]
-        dl = box_distance_sq(p, bvh.lower[l], bvh.upper[l])
-        dr = box_distance_sq(p, bvh.lower[r], bvh.upper[r])
-        if l >= n_internal:
-            if dl < best_sq:
-                d_sq = leaf_distance_sq(bvh, l - n_internal, p)
-                if d_sq < best_sq:
-                    best_sq = d_sq
-                    best_leaf = l - n_internal
-            dl = 3.0e38
-        if r >= n_internal:
-            if dr < best_sq:
-                d_sq = leaf_distance_sq(bvh, r - n_internal, p)
-                if d_sq < best_sq:
-                    best_sq = d_sq
-                    best_leaf = r - n_internal
-            dr = 3.0e38
-        near = l
-        far = r
-        d_near = dl
-        d_far = dr
-        if dr < dl:
-            near = r
-            far = l
-            d_near = dr
-            d_far = dl
-        if d_far < best_sq:
-            nodes[count] = far
+        slot = 2 * nodes[count]
+        near = slot
+        far = slot + 1
+        d_near = box_distance_sq(p, bvh.slot_lower[slot], bvh.slot_upper[slot])
+        d_far = box_distance_sq(p, bvh.slot_lower[slot + 1], bvh.slot_upper[slot + 1])
+        if d_far < d_near:
+            near = slot + 1
+            far = slot
+            d_near, d_far = d_far, d_near
+        # small subtrees first, the nearer one first, so the bound tightens before the far test
+        near_small = bvh.slot_count[near] <= LEAF_SIZE
+        far_small = bvh.slot_count[far] <= LEAF_SIZE
+        if near_small and d_near < best_sq:
+            best_leaf, best_sq = _nearest_in_range(bvh, p, bvh.slot_first[near], bvh.slot_count[near], best_leaf, best_sq)
+        if far_small and d_far < best_sq:
+            best_leaf, best_sq = _nearest_in_range(bvh, p, bvh.slot_first[far], bvh.slot_count[far], best_leaf, best_sq)
+        if not far_small and d_far < best_sq:
+            nodes[count] = bvh.slot_child[far]
             bounds[count] = d_far
             count += 1
-        if d_near < best_sq:
-            nodes[count] = near
+        if not near_small and d_near < best_sq:
+            nodes[count] = bvh.slot_child[near]
             bounds[count] = d_near
             count += 1
     return best_leaf, best_sq
 
 
 @wp.func
+def _solid_angle_of_range(bvh: BvhView, p: wp.vec3, first: int, count: int) -> float:
+    total = float(0.0)
+    for leaf in range(first, first + count):
+        total += solid_angle(p, bvh.tri_a[leaf], bvh.tri_b[leaf], bvh.tri_c[leaf])
+    return total
+
+
+@wp.func
 def winding_number(bvh: BvhView, p: wp.vec3) -> float:
     """Generalised winding number of p: exact solid angles near p, node dipoles far away (Barill 2018)."""
-    n_internal = bvh.internal_count
-    if n_internal == 0:
-        return solid_angle(p, bvh.tri_a[0], bvh.tri_b[0], bvh.tri_c[0]) * _INV_FOUR_PI
+    if bvh.internal_count == 0:
+        return _solid_angle_of_range(bvh, p, 0, 1) * _INV_FOUR_PI
     nodes = stack_int()
     nodes[0] = 0
     count = int(1)
     total = float(0.0)
     while count > 0:
         count -= 1
-        node = nodes[count]
-        if node >= n_internal:
-            leaf = node - n_internal
-            total += solid_angle(p, bvh.tri_a[leaf], bvh.tri_b[leaf], bvh.tri_c[leaf])
-        else:
-            offset = bvh.centre[node] - p
+        slot = 2 * nodes[count]
+        for side in range(2):
+            child = bvh.slot_child[slot + side]
+            offset = bvh.centre[child] - p
             dist = wp.length(offset)
-            if dist > _FAR_FIELD * bvh.radius[node]:
-                total += wp.dot(bvh.area_normal[node], offset) / (dist * dist * dist)
+            if dist > _FAR_FIELD * bvh.radius[child]:
+                total += wp.dot(bvh.area_normal[child], offset) / (dist * dist * dist)
+            elif bvh.slot_count[slot + side] <= LEAF_SIZE:
+                total += _solid_angle_of_range(bvh, p, bvh.slot_first[slot + side], bvh.slot_count[slot + side])
             else:
-                nodes[count] = bvh.left[node]
-                nodes[count + 1] = bvh.right[node]
-                count += 2
+                nodes[count] = child
+                count += 1
     return total * _INV_FOUR_PI
 
 
@@ -304,6 +335,7 @@ def _link_radix_tree(
     right: wp.array(dtype=wp.int32),
     first: wp.array(dtype=wp.int32),
     prefix: wp.array(dtype=wp.int32),
+    last: wp.array(dtype=wp.int32),
 ):
     i = wp.tid()
     # direction of the node's range, and the prefix its range must exceed
@@ -348,7 +380,36 @@ def _link_radix_tree(
     parent[child_left] = i
     parent[child_right] = i
     first[i] = lo
+    last[i] = hi
     prefix[i] = node_prefix - (64 - KEY_TOP_BIT)
+
+
+@wp.kernel(enable_backward=False)
+def _link_slots(
+    left: wp.array(dtype=wp.int32),
+    right: wp.array(dtype=wp.int32),
+    first: wp.array(dtype=wp.int32),
+    last: wp.array(dtype=wp.int32),
+    internal_count: int,
+    slot_child: wp.array(dtype=wp.int32),
+    slot_first: wp.array(dtype=wp.int32),
+    slot_count: wp.array(dtype=wp.int32),
+    parent_slot: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    for side in range(2):
+        child = left[i]
+        if side == 1:
+            child = right[i]
+        lo = child - internal_count
+        hi = lo
+        if child < internal_count:
+            lo = first[child]
+            hi = last[child]
+        slot_child[2 * i + side] = child
+        slot_first[2 * i + side] = lo
+        slot_count[2 * i + side] = hi - lo + 1
+        parent_slot[child] = 2 * i + side
 
 
 @wp.kernel(enable_backward=False)
@@ -356,21 +417,20 @@ def _refit(
     vertices: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.vec3i),
     leaf_face: wp.array(dtype=wp.int32),
-    parent: wp.array(dtype=wp.int32),
-    left: wp.array(dtype=wp.int32),
-    right: wp.array(dtype=wp.int32),
+    parent_slot: wp.array(dtype=wp.int32),
+    slot_child: wp.array(dtype=wp.int32),
     internal_count: int,
     with_moments: int,
-    lower: wp.array(dtype=wp.vec3),
-    upper: wp.array(dtype=wp.vec3),
+    slot_lower: wp.array(dtype=wp.vec3),
+    slot_upper: wp.array(dtype=wp.vec3),
     tri_a: wp.array(dtype=wp.vec3),
     tri_b: wp.array(dtype=wp.vec3),
     tri_c: wp.array(dtype=wp.vec3),
     visits: wp.array(dtype=wp.int32),
     area_normal: wp.array(dtype=wp.vec3),
     centre: wp.array(dtype=wp.vec3),
-    area: wp.array(dtype=wp.float32),
     radius: wp.array(dtype=wp.float32),
+    area: wp.array(dtype=wp.float32),
 ):
     k = wp.tid()
     tri = faces[leaf_face[k]]
@@ -381,8 +441,8 @@ def _refit(
     tri_b[k] = b
     tri_c[k] = c
     node = internal_count + k
-    lower[node] = wp.min(wp.min(a, b), c)
-    upper[node] = wp.max(wp.max(a, b), c)
+    lower = wp.min(wp.min(a, b), c)
+    upper = wp.max(wp.max(a, b), c)
     if with_moments != 0:
         n = 0.5 * wp.cross(b - a, c - a)
         mid = (a + b + c) / 3.0
@@ -390,18 +450,22 @@ def _refit(
         centre[node] = mid
         area[node] = wp.length(n)
         radius[node] = wp.max(wp.max(wp.length(a - mid), wp.length(b - mid)), wp.length(c - mid))
-    # Walk up; the second child to arrive at a node merges both (Karras 2012). Each writer fences before
-    # its arrival count, and the merger reads its children from L2, so no stale value is merged.
-    thread_fence()
-    node = parent[node]
-    while node >= 0:
+    # Walk up; each node's box goes into its slot in the parent, and the second child to arrive at a node
+    # merges both (Karras 2012). Writers fence before counting their arrival and the merger reads its
+    # children from L2, so no stale value is merged.
+    slot = parent_slot[node]
+    while slot >= 0:
+        slot_lower[slot] = lower
+        slot_upper[slot] = upper
+        thread_fence()
+        node = slot // 2
         if wp.atomic_add(visits, node, 1) == 0:
             return
-        l = left[node]
-        r = right[node]
-        lower[node] = wp.min(load_coherent_vec3(lower, l), load_coherent_vec3(lower, r))
-        upper[node] = wp.max(load_coherent_vec3(upper, l), load_coherent_vec3(upper, r))
+        lower = wp.min(load_coherent_vec3(slot_lower, 2 * node), load_coherent_vec3(slot_lower, 2 * node + 1))
+        upper = wp.max(load_coherent_vec3(slot_upper, 2 * node), load_coherent_vec3(slot_upper, 2 * node + 1))
         if with_moments != 0:
+            l = slot_child[2 * node]
+            r = slot_child[2 * node + 1]
             area_l = load_coherent_float(area, l)
             area_r = load_coherent_float(area, r)
             centre_l = load_coherent_vec3(centre, l)
@@ -417,5 +481,4 @@ def _refit(
                 wp.length(centre_l - mid) + load_coherent_float(radius, l),
                 wp.length(centre_r - mid) + load_coherent_float(radius, r),
             )
-        thread_fence()
-        node = parent[node]
+        slot = parent_slot[node]

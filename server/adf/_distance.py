@@ -16,7 +16,7 @@ from badf.server.adf._buffers import DeviceBuffers
 from badf.server.adf._bvh import BvhView, leaf_distance_sq, nearest_leaf, spatial_seed
 from badf.server.adf._geometry import closest_point_on_triangle, morton3, morton3_decode, quantize
 from badf.server.adf._octree import OctreeView, leaf_corner, locate
-from badf.server.adf._sign import SIGN_PSEUDONORMAL, SignView, feature_normal, is_inside
+from badf.server.adf._sign import SIGN_PSEUDONORMAL, SIGN_WINDING, SignView, feature_normal, inside_by_pseudonormal, inside_by_winding
 
 # Output selection bits of a point query.
 OUT_DISTANCE = 1
@@ -28,7 +28,6 @@ _OUT_DISTANCE = wp.constant(OUT_DISTANCE)
 _OUT_CLOSEST = wp.constant(OUT_CLOSEST)
 _OUT_NORMAL = wp.constant(OUT_NORMAL)
 _OUT_FACE = wp.constant(OUT_FACE)
-_PSEUDONORMAL = wp.constant(SIGN_PSEUDONORMAL)
 
 # Seeds for the corner searches.
 SEED_SPATIAL = 0
@@ -72,7 +71,7 @@ class CornerField:
             previous_cell = self._previous_side / float(1 << depth)
         half = side / 2.0
         wp.launch(
-            _corner_distances,
+            corner_kernel(sign.method),
             dim=count,
             inputs=[corner_keys, wp.vec3(-half, -half, -half), cell, 1.0 / side, depth, bvh, sign, band or 0.0,
                     1 if use_previous else 0, self._previous_keys, self._previous_face, self._previous_count,
@@ -112,7 +111,7 @@ class PointQuery:
         face = b.ensure("query.face", n if outputs & OUT_FACE else 1, wp.int32)
         wp.copy(points, wp.array(local_points, dtype=wp.vec3, device="cpu", copy=False), count=n)
         wp.launch(
-            _query_points,
+            query_kernel(sign.method),
             dim=n,
             inputs=[points, 1 if exact else 0, outputs, octree, corner_value, corner_leaf, bvh, sign, 1.0 / side,
                     band or 0.0],
@@ -161,55 +160,23 @@ def _leaf_faces(leaf: wp.array(dtype=wp.int32), bvh: BvhView, face: wp.array(dty
     face[i] = bvh.leaf_face[leaf[i]]
 
 
-@wp.kernel(enable_backward=False)
-def _corner_distances(
-    corner_keys: wp.array(dtype=wp.int64),
-    origin: wp.vec3,
-    cell: float,
-    inv_side: float,
-    depth: int,
-    bvh: BvhView,
-    sign: SignView,
-    band: float,
-    coherent: int,
-    previous_keys: wp.array(dtype=wp.int64),
-    previous_face: wp.array(dtype=wp.int32),
-    previous_count: int,
-    previous_origin: wp.vec3,
-    previous_inv_cell: float,
-    value: wp.array(dtype=wp.float32),
-    nearest: wp.array(dtype=wp.int32),
-):
-    i = wp.tid()
-    key = corner_keys[i]
-    lattice = morton3_decode(key)
-    p = origin + wp.vec3(float(lattice[0]), float(lattice[1]), float(lattice[2])) * cell
-    seed = int(-1)
-    if coherent != 0:
-        # last frame's nearest lattice point (the same one while the domain stays), or its neighbour in
-        # Morton order: its nearest face bounds this search either way
-        q = (p - previous_origin) * previous_inv_cell
-        top = 1 << depth
-        previous_key = morton3(
-            wp.clamp(int(wp.round(q[0])), 0, top), wp.clamp(int(wp.round(q[1])), 0, top),
-            wp.clamp(int(wp.round(q[2])), 0, top),
-        )
-        slot = wp.min(_search_sorted(previous_keys, previous_count, previous_key), previous_count - 1)
-        seed = bvh.face_leaf[previous_face[slot]]
-    else:
-        seed = spatial_seed(bvh, p, origin, inv_side)
-    leaf, best_sq = _nearest_with_band(bvh, p, seed, band)
-    if leaf < 0:
-        inside = is_inside(sign, bvh, p, -1, p, 0)
-        value[i] = wp.where(inside, -band, band)
-        nearest[i] = seed
-        return
-    closest, feature = closest_point_on_triangle(p, bvh.tri_a[leaf], bvh.tri_b[leaf], bvh.tri_c[leaf])
-    d = wp.sqrt(best_sq)
-    if is_inside(sign, bvh, p, bvh.leaf_face[leaf], closest, feature):
-        d = -d
-    value[i] = d
-    nearest[i] = leaf
+_KERNELS: dict[tuple[str, int], wp.Kernel] = {}
+
+
+def corner_kernel(method: int) -> wp.Kernel:
+    """The corner kernel compiled for one sign method, so the other methods' code costs it no registers."""
+    key = ("corner", method)
+    if key not in _KERNELS:
+        _KERNELS[key] = _make_corner_kernel(method)
+    return _KERNELS[key]
+
+
+def query_kernel(method: int) -> wp.Kernel:
+    """The point-query kernel compiled for one sign method."""
+    key = ("query", method)
+    if key not in _KERNELS:
+        _KERNELS[key] = _make_query_kernel(method)
+    return _KERNELS[key]
 
 
 @wp.func
@@ -221,125 +188,197 @@ def _face_normal(bvh: BvhView, leaf: int) -> wp.vec3:
     return wp.vec3(0.0)
 
 
-@wp.kernel(enable_backward=False)
-def _query_points(
-    points: wp.array(dtype=wp.vec3),
-    exact: int,
-    outputs: int,
-    tree: OctreeView,
-    corner_value: wp.array(dtype=wp.float32),
-    corner_leaf: wp.array(dtype=wp.int32),
-    bvh: BvhView,
-    sign: SignView,
-    inv_side: float,
-    band: float,
-    out_distance: wp.array(dtype=wp.float32),
-    out_closest: wp.array(dtype=wp.vec3),
-    out_normal: wp.array(dtype=wp.vec3),
-    out_face: wp.array(dtype=wp.int32),
-):
-    i = wp.tid()
-    p = points[i]
-    resolution = 1 << tree.depth
-    g = (p - tree.origin) / tree.cell
-    top = float(resolution)
-    in_domain = g[0] >= 0.0 and g[1] >= 0.0 and g[2] >= 0.0 and g[0] <= top and g[1] <= top and g[2] <= top
+def _make_corner_kernel(method: int) -> wp.Kernel:
+    pseudonormal = method == SIGN_PSEUDONORMAL
+    winding = method == SIGN_WINDING
 
-    seed = int(-1)
-    if in_domain:
-        cell = quantize(p, tree.origin, 1.0 / tree.cell, resolution)
-        node, octant, level = locate(tree, cell)
-        scale = 1 << (tree.depth - level)
-        base = wp.vec3(
-            float((cell[0] // scale) * scale), float((cell[1] // scale) * scale), float((cell[2] // scale) * scale)
-        )
-        t = (g - base) / float(scale)
-        t = wp.vec3(wp.clamp(t[0], 0.0, 1.0), wp.clamp(t[1], 0.0, 1.0), wp.clamp(t[2], 0.0, 1.0))
-        if exact == 0:
-            # trilinear interpolation of the leaf's corners, its gradient, and the corner nearest p
-            value = float(0.0)
-            grad = wp.vec3(0.0)
-            heaviest = float(-1.0)
-            nearest_corner = int(0)
+    def corner_distances(
+        corner_keys: wp.array(dtype=wp.int64),
+        origin: wp.vec3,
+        cell: float,
+        inv_side: float,
+        depth: int,
+        bvh: BvhView,
+        sign: SignView,
+        band: float,
+        coherent: int,
+        previous_keys: wp.array(dtype=wp.int64),
+        previous_face: wp.array(dtype=wp.int32),
+        previous_count: int,
+        previous_origin: wp.vec3,
+        previous_inv_cell: float,
+        value: wp.array(dtype=wp.float32),
+        nearest: wp.array(dtype=wp.int32),
+    ):
+        i = wp.tid()
+        key = corner_keys[i]
+        lattice = morton3_decode(key)
+        p = origin + wp.vec3(float(lattice[0]), float(lattice[1]), float(lattice[2])) * cell
+        seed = int(-1)
+        if coherent != 0:
+            # last frame's nearest lattice point (the same one while the domain stays), or its neighbour in
+            # Morton order: its nearest face bounds this search either way
+            q = (p - previous_origin) * previous_inv_cell
+            top = 1 << depth
+            previous_key = morton3(
+                wp.clamp(int(wp.round(q[0])), 0, top),
+                wp.clamp(int(wp.round(q[1])), 0, top),
+                wp.clamp(int(wp.round(q[2])), 0, top),
+            )
+            slot = wp.min(_search_sorted(previous_keys, previous_count, previous_key), previous_count - 1)
+            seed = bvh.face_leaf[previous_face[slot]]
+        else:
+            seed = spatial_seed(bvh, p, origin, inv_side)
+        leaf, best_sq = _nearest_with_band(bvh, p, seed, band)
+        inside = False
+        d = band
+        if leaf >= 0:
+            d = wp.sqrt(best_sq)
+            nearest[i] = leaf
+            if wp.static(pseudonormal):
+                closest, feature = closest_point_on_triangle(p, bvh.tri_a[leaf], bvh.tri_b[leaf], bvh.tri_c[leaf])
+                inside = inside_by_pseudonormal(sign, bvh, p, bvh.leaf_face[leaf], closest, feature)
+        else:
+            nearest[i] = seed
+            if wp.static(pseudonormal):
+                inside = inside_by_winding(bvh, p)
+        if wp.static(winding):
+            inside = inside_by_winding(bvh, p)
+        value[i] = wp.where(inside, -d, d)
+
+    return wp.kernel(corner_distances, name=f"corner_distances_{method}", enable_backward=False, module="unique")
+
+
+def _make_query_kernel(method: int) -> wp.Kernel:
+    pseudonormal = method == SIGN_PSEUDONORMAL
+    winding = method == SIGN_WINDING
+
+    def query_points(
+        points: wp.array(dtype=wp.vec3),
+        exact: int,
+        outputs: int,
+        tree: OctreeView,
+        corner_value: wp.array(dtype=wp.float32),
+        corner_leaf: wp.array(dtype=wp.int32),
+        bvh: BvhView,
+        sign: SignView,
+        inv_side: float,
+        band: float,
+        out_distance: wp.array(dtype=wp.float32),
+        out_closest: wp.array(dtype=wp.vec3),
+        out_normal: wp.array(dtype=wp.vec3),
+        out_face: wp.array(dtype=wp.int32),
+    ):
+        i = wp.tid()
+        p = points[i]
+        resolution = 1 << tree.depth
+        g = (p - tree.origin) / tree.cell
+        top = float(resolution)
+        in_domain = g[0] >= 0.0 and g[1] >= 0.0 and g[2] >= 0.0 and g[0] <= top and g[1] <= top and g[2] <= top
+
+        seed = int(-1)
+        if in_domain:
+            cell = quantize(p, tree.origin, 1.0 / tree.cell, resolution)
+            node, octant, level = locate(tree, cell)
+            scale = 1 << (tree.depth - level)
+            base = wp.vec3(
+                float((cell[0] // scale) * scale), float((cell[1] // scale) * scale), float((cell[2] // scale) * scale)
+            )
+            t = (g - base) / float(scale)
+            t = wp.vec3(wp.clamp(t[0], 0.0, 1.0), wp.clamp(t[1], 0.0, 1.0), wp.clamp(t[2], 0.0, 1.0))
+            if exact == 0:
+                # trilinear interpolation of the leaf's corners, its gradient, and the corner nearest p
+                value = float(0.0)
+                grad = wp.vec3(0.0)
+                heaviest = float(-1.0)
+                nearest_corner = int(0)
+                for corner in range(8):
+                    cx = float((corner >> 2) & 1)
+                    cy = float((corner >> 1) & 1)
+                    cz = float(corner & 1)
+                    wx = cx * t[0] + (1.0 - cx) * (1.0 - t[0])
+                    wy = cy * t[1] + (1.0 - cy) * (1.0 - t[1])
+                    wz = cz * t[2] + (1.0 - cz) * (1.0 - t[2])
+                    slot = leaf_corner(tree, node, octant, corner)
+                    v = corner_value[slot]
+                    weight = wx * wy * wz
+                    value += weight * v
+                    grad += v * wp.vec3((2.0 * cx - 1.0) * wy * wz, (2.0 * cy - 1.0) * wx * wz, (2.0 * cz - 1.0) * wx * wy)
+                    if weight > heaviest:
+                        heaviest = weight
+                        nearest_corner = slot
+                grad = grad / (float(scale) * tree.cell)
+                length = wp.length(grad)
+                unit = wp.vec3(0.0)
+                if length > 0.0:
+                    unit = grad / length
+                if outputs & _OUT_DISTANCE:
+                    out_distance[i] = value
+                if outputs & _OUT_NORMAL:
+                    out_normal[i] = unit
+                if outputs & _OUT_CLOSEST:
+                    out_closest[i] = p - value * unit
+                if outputs & _OUT_FACE:
+                    face = bvh.leaf_face[corner_leaf[nearest_corner]]
+                    if band > 0.0 and wp.abs(value) >= band:
+                        face = -1
+                    out_face[i] = face
+                return
+            # exact: start from the nearest of the faces recorded at the cell's corners
+            best_sq = float(3.0e38)
             for corner in range(8):
-                cx = float((corner >> 2) & 1)
-                cy = float((corner >> 1) & 1)
-                cz = float(corner & 1)
-                wx = cx * t[0] + (1.0 - cx) * (1.0 - t[0])
-                wy = cy * t[1] + (1.0 - cy) * (1.0 - t[1])
-                wz = cz * t[2] + (1.0 - cz) * (1.0 - t[2])
-                slot = leaf_corner(tree, node, octant, corner)
-                v = corner_value[slot]
-                weight = wx * wy * wz
-                value += weight * v
-                grad += v * wp.vec3((2.0 * cx - 1.0) * wy * wz, (2.0 * cy - 1.0) * wx * wz, (2.0 * cz - 1.0) * wx * wy)
-                if weight > heaviest:
-                    heaviest = weight
-                    nearest_corner = slot
-            grad = grad / (float(scale) * tree.cell)
-            length = wp.length(grad)
-            unit = wp.vec3(0.0)
-            if length > 0.0:
-                unit = grad / length
-            if outputs & _OUT_DISTANCE:
-                out_distance[i] = value
-            if outputs & _OUT_NORMAL:
-                out_normal[i] = unit
-            if outputs & _OUT_CLOSEST:
-                out_closest[i] = p - value * unit
-            if outputs & _OUT_FACE:
-                face = bvh.leaf_face[corner_leaf[nearest_corner]]
-                if band > 0.0 and wp.abs(value) >= band:
-                    face = -1
-                out_face[i] = face
-            return
-        # exact: start from the nearest of the faces recorded at the cell's corners
-        best_sq = float(3.0e38)
-        for corner in range(8):
-            leaf = corner_leaf[leaf_corner(tree, node, octant, corner)]
-            d_sq = leaf_distance_sq(bvh, leaf, p)
-            if d_sq < best_sq:
-                best_sq = d_sq
-                seed = leaf
-    else:
-        seed = spatial_seed(bvh, p, tree.origin, inv_side)
+                leaf = corner_leaf[leaf_corner(tree, node, octant, corner)]
+                d_sq = leaf_distance_sq(bvh, leaf, p)
+                if d_sq < best_sq:
+                    best_sq = d_sq
+                    seed = leaf
+        else:
+            seed = spatial_seed(bvh, p, tree.origin, inv_side)
 
-    leaf, best_sq = _nearest_with_band(bvh, p, seed, band)
-    if leaf < 0:
+        leaf, best_sq = _nearest_with_band(bvh, p, seed, band)
+        # outside the domain (which holds the whole mesh) a point is outside the mesh
+        if leaf < 0:
+            inside = False
+            if wp.static(pseudonormal or winding):
+                if in_domain:
+                    inside = inside_by_winding(bvh, p)
+            if outputs & _OUT_DISTANCE:
+                out_distance[i] = wp.where(inside, -band, band)
+            if outputs & _OUT_NORMAL:
+                out_normal[i] = wp.vec3(0.0)
+            if outputs & _OUT_CLOSEST:
+                out_closest[i] = wp.vec3(0.0)
+            if outputs & _OUT_FACE:
+                out_face[i] = -1
+            return
+        closest, feature = closest_point_on_triangle(p, bvh.tri_a[leaf], bvh.tri_b[leaf], bvh.tri_c[leaf])
+        face = bvh.leaf_face[leaf]
+        offset = p - closest
+        d = wp.sqrt(best_sq)
         inside = False
         if in_domain:
-            inside = is_inside(sign, bvh, p, -1, p, 0)
+            if wp.static(pseudonormal):
+                inside = inside_by_pseudonormal(sign, bvh, p, face, closest, feature)
+            if wp.static(winding):
+                inside = inside_by_winding(bvh, p)
         if outputs & _OUT_DISTANCE:
-            out_distance[i] = wp.where(inside, -band, band)
+            out_distance[i] = wp.where(inside, -d, d)
         if outputs & _OUT_NORMAL:
-            out_normal[i] = wp.vec3(0.0)
+            # gradient of the signed distance: away from the surface outside, towards it (outward) inside
+            n = wp.vec3(0.0)
+            length = wp.length(offset)
+            if length > 0.0:
+                n = offset / length
+                if inside:
+                    n = -n
+            else:
+                n = _face_normal(bvh, leaf)
+                if wp.static(pseudonormal):
+                    n = feature_normal(sign, face, feature)
+            out_normal[i] = n
         if outputs & _OUT_CLOSEST:
-            out_closest[i] = wp.vec3(0.0)
+            out_closest[i] = closest
         if outputs & _OUT_FACE:
-            out_face[i] = -1
-        return
-    closest, feature = closest_point_on_triangle(p, bvh.tri_a[leaf], bvh.tri_b[leaf], bvh.tri_c[leaf])
-    face = bvh.leaf_face[leaf]
-    offset = p - closest
-    d = wp.sqrt(best_sq)
-    inside = False
-    if in_domain:
-        inside = is_inside(sign, bvh, p, face, closest, feature)
-    if outputs & _OUT_DISTANCE:
-        out_distance[i] = wp.where(inside, -d, d)
-    if outputs & _OUT_NORMAL:
-        # gradient of the signed distance: away from the surface outside, towards it (outward) inside
-        n = wp.vec3(0.0)
-        if d > 0.0:
-            n = offset / d
-            if inside:
-                n = -n
-        elif sign.method == _PSEUDONORMAL:
-            n = feature_normal(sign, face, feature)
-        else:
-            n = _face_normal(bvh, leaf)
-        out_normal[i] = n
-    if outputs & _OUT_CLOSEST:
-        out_closest[i] = closest
-    if outputs & _OUT_FACE:
-        out_face[i] = face
+            out_face[i] = face
+
+    return wp.kernel(query_points, name=f"query_points_{method}", enable_backward=False, module="unique")

@@ -174,6 +174,7 @@ class DistanceField:
         self._clock = StageClock(self._device)
         self._bvh = Bvh(len(f), with_moments=self._sign != "none", buffers=b)
         self._octree = Octree(self._depth, self._refine, self._halo, b)
+        self._octree.surface_area = area
         self._normals = Pseudonormals(self._sign, self._topology, self._faces, b)
         self._corners = CornerField(b)
         self._points = PointQuery(b)
@@ -305,6 +306,7 @@ class DistanceField:
             "queries": c.queries,
             "query_points": c.query_points,
             "device_bytes": self._buffers.nbytes(),
+            "memory_bytes": self._buffers.nbytes_by_role(),
         }
 
     # -- the pipeline ---------------------------------------------------------------------------------

@@ -1,17 +1,19 @@
 """The octree: surface cells, their radix tree, the paper's Algorithm 1, and the de-duplicated corners.
 
-Stages, each count-allocate-fill with one host read-back of a total:
+Stages, each with one host read-back of a count:
 1. Surface cells at the finest level: every cell a triangle overlaps ("surface", the default), or the cell
    holding its centroid ("centroid", the paper's rule), grown by `halo` cells in every direction (default 1:
    then any point within one finest cell of the surface is interpolated in a finest cell, whose corners
-   are exact, rather than in a large empty cell across a coarse cell boundary). Sorted and made unique.
+   are exact, rather than in a large empty cell across a coarse cell boundary). A hash set keeps each
+   cell once; the distinct cells are sorted by Morton code.
 2. Karras's radix tree over those cell keys; the paper's Algorithm 1 turns each tree edge whose common
    prefix crosses a multiple of 3 bits into the octree nodes between the two ends, so every node is made
    exactly once and in parallel. The nodes are sorted by (level, Morton code).
 3. Links: each internal node gets an 8-bit child mask and the index of its first child; children of one
    node are contiguous. A point is located by walking the masks from the root.
-4. Corners: each internal node names the 27 lattice points of its 2x2x2 children; they are sorted by
-   Morton code and made unique, and every node keeps the index of each of its 27 points.
+4. Corners: each internal node names the 27 lattice points of its 2x2x2 children; a hash set keeps each
+   point once (the paper's de-duplication by corner Morton code), the distinct points are sorted by
+   Morton code, and every node keeps the index of each of its 27 points in that order.
 Every node above the finest level holds surface, so every internal node is refined into 8 children;
 children that hold no surface are empty leaves, whose corners come from their parent's 27 points.
 """
@@ -23,8 +25,9 @@ from typing import Literal
 import numpy as np
 import warp as wp
 
-from badf.server.adf._buffers import DeviceBuffers
+from badf.server.adf._buffers import DeviceBuffers, HostReadback
 from badf.server.adf._bvh import link_radix_tree
+from badf.server.adf._hashset import HashSet, HashSetView, set_insert
 from badf.server.adf._geometry import KEY_TOP_BIT, morton3, morton3_decode, popcount, quantize, triangle_overlaps_cube
 from badf.server.adf._tolerances import CELL_OVERLAP_SLACK
 
@@ -57,7 +60,12 @@ class Octree:
         self.halo = halo
         self.buffers = buffers
         self.device = buffers.device
-        self.host = _HostCounts(self.device)
+        self.host = HostReadback(self.device)
+        # the corner set reuses the surface set's buffers: the surface cells are dead by the corner stage
+        self.surface_set = HashSet("oct.set_a", buffers, self.host)
+        self.halo_set = HashSet("oct.set_b", buffers, self.host)
+        self.corner_set = HashSet("oct.set_a", buffers, self.host)
+        self.surface_area = 0.0  # set by the owner: sizes the first frame's surface-cell set
         # filled by build()
         self.surface_cell_count = 0  # unique finest cells holding surface
         self.node_count = 0
@@ -92,53 +100,34 @@ class Octree:
 
     # -- stage 1: surface cells -------------------------------------------------------------------------
     def _surface_cells(self, vertices, faces, face_count: int, origin: wp.vec3, side: float) -> wp.array:
-        b, d = self.buffers, self.depth
+        d = self.depth
         resolution = 1 << d
         cell = side / resolution
         shift = KEY_TOP_BIT - 3 * d
         if self.refine == "surface":
-            counts = b.ensure("oct.tri_cell_counts", face_count, wp.int32)
-            offsets = b.ensure("oct.tri_cell_offsets", face_count, wp.int32)
-            keys = b.ensure("oct.cell_keys", 1, wp.int64)
-            args = [vertices, faces, origin, cell, resolution, shift]
-            wp.launch(_surface_cells, dim=face_count, inputs=[*args, 0, offsets], outputs=[counts, keys],
-                      device=self.device)
-            wp.utils.array_scan(counts[:face_count], offsets[:face_count], inclusive=False)
-            total = self.host.read_sum(counts, offsets, face_count - 1)
-            keys = b.ensure("oct.cell_keys", 2 * total, wp.int64)
-            wp.launch(_surface_cells, dim=face_count, inputs=[*args, 1, offsets], outputs=[counts, keys],
-                      device=self.device)
+            # a surface of area A crosses about 1.5 A / h^2 cells of size h
+            kernel, expected = _insert_surface_cells, int(2.0 * self.surface_area / (cell * cell)) + 64
         else:
-            total = face_count
-            keys = b.ensure("oct.cell_keys", 2 * total, wp.int64)
-            wp.launch(_centroid_cells, dim=face_count, inputs=[vertices, faces, origin, cell, resolution, shift],
-                      outputs=[keys], device=self.device)
-        values = b.ensure("oct.cell_values", 2 * total, wp.int32)
-        wp.utils.radix_sort_pairs(keys, values, total, begin_bit=shift, end_bit=KEY_TOP_BIT)
-        cells, count = self._unique(keys, total, "oct.cells")
+            kernel, expected = _insert_centroid_cells, face_count
+        count = self.surface_set.insert_all(
+            expected,
+            lambda table: wp.launch(kernel, dim=face_count, inputs=[vertices, faces, origin, cell, resolution, shift, table],
+                                    device=self.device),
+        )
+        cells = self.surface_set
         if self.halo > 0:
+            listed = self.surface_set.view.listed_keys
             width = 2 * self.halo + 1
             grown = count * width**3
-            keys = b.ensure("oct.halo_keys", 2 * grown, wp.int64)
-            values = b.ensure("oct.halo_values", 2 * grown, wp.int32)
-            wp.launch(_grow_cells, dim=grown, inputs=[cells, self.halo, resolution, shift], outputs=[keys],
-                      device=self.device)
-            wp.utils.radix_sort_pairs(keys, values, grown, begin_bit=shift, end_bit=KEY_TOP_BIT)
-            cells, count = self._unique(keys, grown, "oct.halo")
+            count = self.halo_set.insert_all(
+                3 * count,  # a sheet of cells one thick grows to about three
+                lambda table: wp.launch(_insert_halo_cells, dim=grown, inputs=[listed, self.halo, resolution, shift, table],
+                                        device=self.device),
+            )
+            cells = self.halo_set
+        keys, _ = cells.sort_listed(shift, KEY_TOP_BIT)
         self.surface_cell_count = count
-        return cells
-
-    def _unique(self, sorted_keys: wp.array, count: int, name: str) -> tuple[wp.array, int]:
-        """Compact sorted int64 keys to their distinct values; returns (array, distinct count)."""
-        b = self.buffers
-        flags = b.ensure(name + ".flags", count, wp.int32)
-        scan = b.ensure(name + ".scan", count, wp.int32)
-        wp.launch(_mark_first_of_run, dim=count, inputs=[sorted_keys], outputs=[flags], device=self.device)
-        wp.utils.array_scan(flags[:count], scan[:count], inclusive=True)
-        distinct = self.host.read(scan, count - 1)
-        out = b.ensure(name + ".unique", distinct, wp.int64)
-        wp.launch(_compact_runs, dim=count, inputs=[sorted_keys, flags, scan], outputs=[out], device=self.device)
-        return out, distinct
+        return keys
 
     # -- stage 2: Algorithm 1 over the radix tree of the cells ---------------------------------------------
     def _octree_nodes(self, cell_keys: wp.array) -> None:
@@ -189,50 +178,19 @@ class Octree:
     def _corners(self) -> None:
         b, d = self.buffers, self.depth
         candidates = 27 * self.internal_count
-        keys = b.ensure("oct.corner_candidate_keys", 2 * candidates, wp.int64)
-        slots = b.ensure("oct.corner_candidate_slots", 2 * candidates, wp.int32)
-        wp.launch(_corner_candidates, dim=candidates, inputs=[self.node_keys, d], outputs=[keys, slots],
-                  device=self.device)
-        wp.utils.radix_sort_pairs(keys, slots, candidates, end_bit=3 * (d + 1))
-        flags = b.ensure("oct.corner_flags", candidates, wp.int32)
-        scan = b.ensure("oct.corner_scan", candidates, wp.int32)
-        wp.launch(_mark_first_of_run, dim=candidates, inputs=[keys], outputs=[flags], device=self.device)
-        wp.utils.array_scan(flags[:candidates], scan[:candidates], inclusive=True)
-        self.corner_count = self.host.read(scan, candidates - 1)
-        self.corner_candidate_count = candidates
         self.corner_slot = b.ensure("oct.corner_slot", candidates, wp.int32)
-        self.corner_keys = b.ensure("oct.corner_keys", self.corner_count, wp.int64)
-        wp.launch(_number_corners, dim=candidates, inputs=[keys, slots, flags, scan],
-                  outputs=[self.corner_slot, self.corner_keys], device=self.device)
-
-
-class _HostCounts:
-    """Reads a few integers back from the device through one small pinned buffer (no allocation per frame)."""
-
-    def __init__(self, device: wp.Device):
-        self.device = device
-        self._host = wp.empty(64, dtype=wp.int32, device="cpu", pinned=device.is_cuda)
-
-    def read(self, arr: wp.array, index: int) -> int:
-        wp.copy(self._host, arr, dest_offset=0, src_offset=index, count=1)
-        if self.device.is_cuda:
-            wp.synchronize_stream(wp.get_stream(self.device))
-        return int(self._host.numpy()[0])
-
-    def read_sum(self, a: wp.array, b: wp.array, index: int) -> int:
-        """a[index] + b[index]: the total of an exclusive scan b of counts a."""
-        wp.copy(self._host, a, dest_offset=0, src_offset=index, count=1)
-        wp.copy(self._host, b, dest_offset=1, src_offset=index, count=1)
-        if self.device.is_cuda:
-            wp.synchronize_stream(wp.get_stream(self.device))
-        values = self._host.numpy()
-        return int(values[0]) + int(values[1])
-
-    def read_array(self, arr: wp.array, count: int) -> np.ndarray:
-        wp.copy(self._host, arr, count=count)
-        if self.device.is_cuda:
-            wp.synchronize_stream(wp.get_stream(self.device))
-        return self._host.numpy()[:count].copy()
+        count = self.corner_set.insert_all(
+            10 * self.internal_count,
+            lambda table: wp.launch(_insert_corners, dim=candidates, inputs=[self.node_keys, d, table],
+                                    outputs=[self.corner_slot], device=self.device),
+        )
+        keys, slots = self.corner_set.sort_listed(0, 3 * (d + 1))
+        rank = b.ensure("oct.corner_rank", self.corner_set.view.mask + 1, wp.int32)
+        wp.launch(_rank_slots, dim=count, inputs=[slots], outputs=[rank], device=self.device)
+        wp.launch(_slots_to_ranks, dim=candidates, inputs=[rank], outputs=[self.corner_slot], device=self.device)
+        self.corner_candidate_count = candidates
+        self.corner_count = count
+        self.corner_keys = keys
 
 
 @wp.func
@@ -261,106 +219,6 @@ def leaf_corner(tree: OctreeView, node: int, octant: int, corner: int) -> int:
     y = ((octant >> 1) & 1) + ((corner >> 1) & 1)
     z = (octant & 1) + (corner & 1)
     return tree.corner_slot[node * 27 + x * 9 + y * 3 + z]
-
-
-@wp.kernel(enable_backward=False)
-def _surface_cells(
-    vertices: wp.array(dtype=wp.vec3),
-    faces: wp.array(dtype=wp.vec3i),
-    origin: wp.vec3,
-    cell: float,
-    resolution: int,
-    shift: int,
-    fill: int,
-    offsets: wp.array(dtype=wp.int32),
-    counts: wp.array(dtype=wp.int32),
-    keys: wp.array(dtype=wp.int64),
-):
-    f = wp.tid()
-    tri = faces[f]
-    a = vertices[tri[0]]
-    b = vertices[tri[1]]
-    c = vertices[tri[2]]
-    pad = wp.vec3(_SLACK * cell)
-    inv_cell = 1.0 / cell
-    lo = quantize(wp.min(wp.min(a, b), c) - pad, origin, inv_cell, resolution)
-    hi = quantize(wp.max(wp.max(a, b), c) + pad, origin, inv_cell, resolution)
-    half = 0.5 * cell + _SLACK * cell
-    base = int(0)
-    limit = int(0)
-    if fill != 0:
-        base = offsets[f]
-        limit = counts[f]
-    found = int(0)
-    for x in range(lo[0], hi[0] + 1):
-        for y in range(lo[1], hi[1] + 1):
-            for z in range(lo[2], hi[2] + 1):
-                centre = origin + wp.vec3(float(x) + 0.5, float(y) + 0.5, float(z) + 0.5) * cell
-                if triangle_overlaps_cube(a, b, c, centre, half):
-                    if fill != 0 and found < limit:
-                        keys[base + found] = morton3(x, y, z) << wp.int64(shift)
-                    found += 1
-    if fill == 0:
-        counts[f] = found
-
-
-@wp.kernel(enable_backward=False)
-def _grow_cells(
-    cells: wp.array(dtype=wp.int64),
-    halo: int,
-    resolution: int,
-    shift: int,
-    keys: wp.array(dtype=wp.int64),
-):
-    # cell i // width^3 and its neighbour i % width^3 within `halo` cells (clamped into the grid)
-    i = wp.tid()
-    width = 2 * halo + 1
-    volume = width * width * width
-    cell = morton3_decode(cells[i // volume] >> wp.int64(shift))
-    r = i % volume
-    top = resolution - 1
-    x = wp.clamp(cell[0] + r // (width * width) - halo, 0, top)
-    y = wp.clamp(cell[1] + (r // width) % width - halo, 0, top)
-    z = wp.clamp(cell[2] + r % width - halo, 0, top)
-    keys[i] = morton3(x, y, z) << wp.int64(shift)
-
-
-@wp.kernel(enable_backward=False)
-def _centroid_cells(
-    vertices: wp.array(dtype=wp.vec3),
-    faces: wp.array(dtype=wp.vec3i),
-    origin: wp.vec3,
-    cell: float,
-    resolution: int,
-    shift: int,
-    keys: wp.array(dtype=wp.int64),
-):
-    f = wp.tid()
-    tri = faces[f]
-    centroid = (vertices[tri[0]] + vertices[tri[1]] + vertices[tri[2]]) / 3.0
-    g = quantize(centroid, origin, 1.0 / cell, resolution)
-    keys[f] = morton3(g[0], g[1], g[2]) << wp.int64(shift)
-
-
-@wp.kernel(enable_backward=False)
-def _mark_first_of_run(keys: wp.array(dtype=wp.int64), flags: wp.array(dtype=wp.int32)):
-    i = wp.tid()
-    if i == 0 or keys[i] != keys[i - 1]:
-        flags[i] = 1
-    else:
-        flags[i] = 0
-
-
-@wp.kernel(enable_backward=False)
-def _compact_runs(
-    keys: wp.array(dtype=wp.int64),
-    flags: wp.array(dtype=wp.int32),
-    scan: wp.array(dtype=wp.int32),
-    out: wp.array(dtype=wp.int64),
-):
-    i = wp.tid()
-    if flags[i] != 0:
-        out[scan[i] - 1] = keys[i]
 
 
 @wp.func
@@ -446,12 +304,80 @@ def _link_children(
 
 
 @wp.kernel(enable_backward=False)
-def _corner_candidates(
+def _insert_surface_cells(
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    origin: wp.vec3,
+    cell: float,
+    resolution: int,
+    shift: int,
+    table: HashSetView,
+):
+    # every finest cell the triangle overlaps (separating axes), tested over the triangle's bounding box
+    f = wp.tid()
+    tri = faces[f]
+    a = vertices[tri[0]]
+    b = vertices[tri[1]]
+    c = vertices[tri[2]]
+    pad = wp.vec3(_SLACK * cell)
+    inv_cell = 1.0 / cell
+    lo = quantize(wp.min(wp.min(a, b), c) - pad, origin, inv_cell, resolution)
+    hi = quantize(wp.max(wp.max(a, b), c) + pad, origin, inv_cell, resolution)
+    half = 0.5 * cell + _SLACK * cell
+    for x in range(lo[0], hi[0] + 1):
+        for y in range(lo[1], hi[1] + 1):
+            for z in range(lo[2], hi[2] + 1):
+                centre = origin + wp.vec3(float(x) + 0.5, float(y) + 0.5, float(z) + 0.5) * cell
+                if triangle_overlaps_cube(a, b, c, centre, half):
+                    set_insert(table, morton3(x, y, z) << wp.int64(shift))
+
+
+@wp.kernel(enable_backward=False)
+def _insert_centroid_cells(
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    origin: wp.vec3,
+    cell: float,
+    resolution: int,
+    shift: int,
+    table: HashSetView,
+):
+    f = wp.tid()
+    tri = faces[f]
+    centroid = (vertices[tri[0]] + vertices[tri[1]] + vertices[tri[2]]) / 3.0
+    g = quantize(centroid, origin, 1.0 / cell, resolution)
+    set_insert(table, morton3(g[0], g[1], g[2]) << wp.int64(shift))
+
+
+@wp.kernel(enable_backward=False)
+def _insert_halo_cells(
+    cells: wp.array(dtype=wp.int64),
+    halo: int,
+    resolution: int,
+    shift: int,
+    table: HashSetView,
+):
+    # cell i // width^3 and its neighbour i % width^3 within `halo` cells (clamped into the grid)
+    i = wp.tid()
+    width = 2 * halo + 1
+    volume = width * width * width
+    cell = morton3_decode(cells[i // volume] >> wp.int64(shift))
+    r = i % volume
+    top = resolution - 1
+    x = wp.clamp(cell[0] + r // (width * width) - halo, 0, top)
+    y = wp.clamp(cell[1] + (r // width) % width - halo, 0, top)
+    z = wp.clamp(cell[2] + r % width - halo, 0, top)
+    set_insert(table, morton3(x, y, z) << wp.int64(shift))
+
+
+@wp.kernel(enable_backward=False)
+def _insert_corners(
     node_keys: wp.array(dtype=wp.int64),
     depth: int,
-    keys: wp.array(dtype=wp.int64),
-    slots: wp.array(dtype=wp.int32),
+    table: HashSetView,
+    corner_slot: wp.array(dtype=wp.int32),
 ):
+    # lattice point t (x, y, z in 0..2) of the children of internal node i // 27; its table slot for now
     i = wp.tid()
     node = i // 27
     t = i - node * 27
@@ -463,21 +389,16 @@ def _corner_candidates(
     x = (cell[0] << scale) + (t // 9) * half
     y = (cell[1] << scale) + ((t // 3) % 3) * half
     z = (cell[2] << scale) + (t % 3) * half
-    keys[i] = morton3(x, y, z)
-    slots[i] = i
+    corner_slot[i] = set_insert(table, morton3(x, y, z))
 
 
 @wp.kernel(enable_backward=False)
-def _number_corners(
-    keys: wp.array(dtype=wp.int64),
-    slots: wp.array(dtype=wp.int32),
-    flags: wp.array(dtype=wp.int32),
-    scan: wp.array(dtype=wp.int32),
-    corner_slot: wp.array(dtype=wp.int32),
-    corner_keys: wp.array(dtype=wp.int64),
-):
+def _rank_slots(slots: wp.array(dtype=wp.int32), rank: wp.array(dtype=wp.int32)):
+    r = wp.tid()
+    rank[slots[r]] = r
+
+
+@wp.kernel(enable_backward=False)
+def _slots_to_ranks(rank: wp.array(dtype=wp.int32), corner_slot: wp.array(dtype=wp.int32)):
     i = wp.tid()
-    index = scan[i] - 1
-    corner_slot[slots[i]] = index
-    if flags[i] != 0:
-        corner_keys[index] = keys[i]
+    corner_slot[i] = rank[corner_slot[i]]

@@ -26,8 +26,6 @@ SIGN_NONE = 0
 SIGN_PSEUDONORMAL = 1
 SIGN_WINDING = 2
 _SIGN_CODES = {"none": SIGN_NONE, "pseudonormal": SIGN_PSEUDONORMAL, "winding": SIGN_WINDING}
-_PSEUDONORMAL = wp.constant(SIGN_PSEUDONORMAL)
-_WINDING = wp.constant(SIGN_WINDING)
 _DEGENERATE = wp.constant(DEGENERATE_AREA)
 
 
@@ -211,16 +209,20 @@ def feature_normal(sign: SignView, face: int, feature: int) -> wp.vec3:
 
 
 @wp.func
-def is_inside(sign: SignView, bvh: BvhView, p: wp.vec3, face: int, closest: wp.vec3, feature: int) -> bool:
-    """Whether p is inside: by the pseudonormal of its closest feature when there is one (face >= 0) and it
-    is not degenerate, else by the winding number (|w| > 1/2, so an inside-out mesh gives the same answer)."""
-    if sign.method == _PSEUDONORMAL and face >= 0:
+def inside_by_winding(bvh: BvhView, p: wp.vec3) -> bool:
+    """|w| > 1/2, so an inside-out mesh gives the same answer as the right way round."""
+    return wp.abs(winding_number(bvh, p)) > 0.5
+
+
+@wp.func
+def inside_by_pseudonormal(sign: SignView, bvh: BvhView, p: wp.vec3, face: int, closest: wp.vec3, feature: int) -> bool:
+    """By the pseudonormal of p's closest feature; by the winding number where there is none (face < 0:
+    nothing within the band) or it is degenerate, or p lies on the feature's tangent plane."""
+    if face >= 0:
         side = wp.dot(p - closest, feature_normal(sign, face, feature))
         if side != 0.0:
             return side < 0.0
-    if sign.method == _PSEUDONORMAL or sign.method == _WINDING:
-        return wp.abs(winding_number(bvh, p)) > 0.5
-    return False
+    return inside_by_winding(bvh, p)
 
 
 @wp.kernel(enable_backward=False)

@@ -1,0 +1,56 @@
+"""What the benchmarks share: loading meshes, a smooth deformation for frames, tables, device names."""
+
+from __future__ import annotations
+
+import datetime
+import pathlib
+
+import numpy as np
+
+
+def load_npz(path: str | pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices float32 (N, 3), faces int32 (M, 3)) of a mesh file; the first frame of a sequence."""
+    data = np.load(path)
+    vertices = data["vertices"]
+    if vertices.ndim == 3:
+        vertices = vertices[0]
+    return np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(data["faces"], np.int32)
+
+
+def deform(vertices: np.ndarray, t: float, amplitude: float = 0.01) -> np.ndarray:
+    """A smooth, time-varying wobble of `amplitude` bounding-box diagonals: a stand-in for an animation."""
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    diag = float(np.linalg.norm(hi - lo))
+    phase = 2.0 * np.pi * ((vertices - lo) / np.maximum(hi - lo, 1e-30) + t)
+    return (vertices + amplitude * diag * np.sin(phase[:, [1, 2, 0]])).astype(np.float32)
+
+
+def timestamp() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+
+
+def bench_device_name(device: str) -> str:
+    import warp as wp
+
+    d = wp.get_device(device)
+    if d.is_cuda:
+        return f"{d.name} ({device})"
+    import platform
+
+    return f"CPU back-end: {platform.processor() or platform.machine()}, {_cpu_count()} cores"
+
+
+def _cpu_count() -> int:
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def print_table(title: str, header: list[str], rows: list[list]) -> None:
+    cells = [[str(h) for h in header]] + [[f"{c:.4g}" if isinstance(c, float) else str(c) for c in row] for row in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
+    print(f"\n{title}")
+    for k, row in enumerate(cells):
+        print("  ".join(cell.rjust(w) for cell, w in zip(row, widths)))
+        if k == 0:
+            print("  ".join("-" * w for w in widths))

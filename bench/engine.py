@@ -1,0 +1,224 @@
+"""Engine benchmark: per-stage build and update times, memory, and the dense-grid baseline a Warp user
+would write instead (wp.Mesh + mesh_query_point_sign_normal over every grid point).
+
+    python -m badf.bench.engine --mesh PATH.npz [--device cuda:0] [--depth 7] [--out results.json]
+
+Times are medians over repeats after a warm-up: "gpu" is the device time between the first and the last
+stage's events (CUDA) or the wall time of the synchronous CPU launches; "wall" is what a caller waits,
+from the call to the end of the device work, Python and read-backs included.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+
+import numpy as np
+
+from badf.bench._common import bench_device_name, deform, load_npz, print_table, timestamp
+
+
+def _median(values):
+    return float(statistics.median(values))
+
+
+def _time_wall(fn, device, repeat: int) -> list[float]:
+    import warp as wp
+
+    out = []
+    for i in range(repeat):
+        wp.synchronize_device(device)
+        start = time.perf_counter()
+        fn(i)
+        wp.synchronize_device(device)
+        out.append((time.perf_counter() - start) * 1e3)
+    return out
+
+
+def measure_field(vertices, faces, *, device: str, repeat: int, **options) -> dict:
+    """Build and coherent-update times (median), per-stage medians, counts and memory of one configuration."""
+    from badf.server.adf import DistanceField
+
+    field = DistanceField(vertices, faces, device=device, **options)  # warm-up: compiles kernels
+    field.update(deform(vertices, 0.5))
+    builds, build_stages = [], []
+
+    def build(_):
+        nonlocal field
+        field = DistanceField(vertices, faces, device=device, **options)
+
+    for i in range(repeat):
+        builds += _time_wall(build, device, 1)
+        build_stages.append(field.stats()["times_ms"])
+    frames = [deform(vertices, 0.02 * k) for k in range(repeat + 1)]
+    update_stages = []
+
+    def update(i):
+        field.update(frames[i + 1])
+
+    updates = []
+    for i in range(repeat):
+        updates += _time_wall(update, device, 1)
+        update_stages.append(field.stats()["times_ms"])
+    stats = field.stats()
+
+    def stage_medians(stage_list):
+        names = stage_list[0].keys()
+        return {name: round(_median([s.get(name, 0.0) for s in stage_list]), 4) for name in names}
+
+    return {
+        "options": options,
+        "build_wall_ms": round(_median(builds), 4),
+        "build_gpu_ms": round(_median([s["total"] for s in build_stages]), 4),
+        "update_wall_ms": round(_median(updates), 4),
+        "update_gpu_ms": round(_median([s["total"] for s in update_stages]), 4),
+        "build_stages_ms": stage_medians(build_stages),
+        "update_stages_ms": stage_medians(update_stages),
+        "counts": stats["counts"],
+        "device_bytes": stats["device_bytes"],
+        "field": field,
+    }
+
+
+def measure_queries(field, vertices, *, device: str, repeat: int, count: int = 65536) -> dict:
+    rng = np.random.default_rng(0)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    points = rng.uniform(lo, hi, size=(count, 3)).astype(np.float32)
+    out = {}
+    results = {}
+    for mode in ("adf", "exact"):
+        field.query(points, mode=mode)
+        times = _time_wall(lambda _: results.__setitem__(mode, field.query(points, mode=mode)), device, repeat)
+        out[f"query_{mode}_ms"] = round(_median(times), 4)
+    error = np.abs(results["adf"].distance - results["exact"].distance)
+    diag = float(np.linalg.norm(hi - lo))
+    out["query_points"] = count
+    out["adf_vs_exact_max_error_diag"] = float(error.max() / diag)
+    out["adf_vs_exact_mean_error_diag"] = float(error.mean() / diag)
+    return out
+
+
+def measure_dense_baseline(vertices, faces, *, device: str, repeat: int, resolution: int = 129) -> dict:
+    """wp.Mesh (default BVH) + mesh_query_point_sign_normal at every point of a resolution^3 grid."""
+    import warp as wp
+
+    @wp.kernel(enable_backward=False)
+    def dense_grid(mesh: wp.uint64, origin: wp.vec3, step: float, n: int, out: wp.array(dtype=wp.float32)):
+        i = wp.tid()
+        x = i // (n * n)
+        y = (i // n) % n
+        z = i % n
+        p = origin + wp.vec3(float(x), float(y), float(z)) * step
+        q = wp.mesh_query_point_sign_normal(mesh, p, 1.0e30)
+        d = wp.length(p - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
+        out[i] = wp.where(q.sign < 0.0, -d, d)
+
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    side = float(np.max(hi - lo)) * 1.2
+    origin = wp.vec3(*((lo + hi) / 2 - side / 2))
+    step = side / (resolution - 1)
+    points = wp.array(vertices, dtype=wp.vec3, device=device)
+    indices = wp.array(faces.reshape(-1), dtype=wp.int32, device=device)
+    grid = wp.zeros(resolution**3, dtype=wp.float32, device=device)
+    holder = {}
+
+    def build(_):
+        holder["mesh"] = wp.Mesh(points=points, indices=indices)
+
+    def query(_):
+        wp.launch(dense_grid, dim=resolution**3, inputs=[holder["mesh"].id, origin, step, resolution], outputs=[grid],
+                  device=device)
+
+    build(0)
+    query(0)
+    builds = _time_wall(build, device, repeat)
+    queries = _time_wall(query, device, repeat)
+    return {
+        "resolution": resolution,
+        "build_ms": round(_median(builds), 4),
+        "query_ms": round(_median(queries), 4),
+        "grid_bytes": resolution**3 * 4,
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_ERROR
+    wp.init()
+    device = args.device or ("cuda:0" if wp.get_cuda_device_count() > 0 else "cpu")
+    vertices, faces = load_npz(args.mesh)
+    repeat = args.repeat
+    report = {
+        "benchmark": "engine",
+        "date": timestamp(),
+        "device": bench_device_name(device),
+        "host": platform.node(),
+        "mesh": {"path": args.mesh, "vertices": len(vertices), "faces": len(faces)},
+        "repeat": repeat,
+        "configurations": [],
+    }
+    configs = [{"depth": args.depth}]
+    if not args.quick:
+        configs += [
+            {"depth": args.depth, "coherence": False},
+            {"depth": args.depth, "sign": "pseudonormal"},
+            {"depth": args.depth, "sign": "none"},
+            {"depth": args.depth, "band": float(np.linalg.norm(vertices.max(0) - vertices.min(0))) * 0.02},
+            {"depth": args.depth, "halo": 0},
+            {"depth": args.depth, "refine": "centroid", "halo": 0},
+        ] + [{"depth": d} for d in range(5, 10) if d != args.depth]
+    rows = []
+    for options in configs:
+        result = measure_field(vertices, faces, device=device, repeat=repeat, **options)
+        field = result.pop("field")
+        if options == configs[0]:
+            result.update(measure_queries(field, vertices, device=device, repeat=repeat))
+        report["configurations"].append(result)
+        rows.append([
+            ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in options.items()),
+            result["build_gpu_ms"], result["build_wall_ms"], result["update_gpu_ms"], result["update_wall_ms"],
+            result["counts"]["unique_corners"], round(result["device_bytes"] / 2**20, 2),
+        ])
+        del field
+    baseline = measure_dense_baseline(vertices, faces, device=device, repeat=repeat)
+    report["dense_baseline"] = baseline
+    first = report["configurations"][0]
+    print_table(
+        f"engine on {report['device']}, {args.mesh} ({len(faces)} triangles), median of {repeat}",
+        ["options", "build gpu ms", "build wall ms", "update gpu ms", "update wall ms", "corners", "MiB"],
+        rows,
+    )
+    print("stages of the first configuration, update (ms):", first["update_stages_ms"])
+    print("stages of the first configuration, build (ms):", first["build_stages_ms"])
+    print(f"queries of 65,536 points: adf {first['query_adf_ms']} ms, exact {first['query_exact_ms']} ms;"
+          f" adf vs exact max error {first['adf_vs_exact_max_error_diag']:.2e} diag")
+    print(f"dense baseline ({baseline['resolution']}^3 grid, wp.Mesh + mesh_query_point_sign_normal): "
+          f"build {baseline['build_ms']} ms, query {baseline['query_ms']} ms, grid {baseline['grid_bytes'] / 2**20:.2f} MiB")
+    if args.out:
+        with open(args.out, "w") as handle:
+            json.dump(report, handle, indent=2)
+        print("wrote", args.out)
+    return 0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--mesh", required=True, help="a .npz with vertices (N, 3) and faces (M, 3)")
+    parser.add_argument("--device", default=None, help="cpu, cuda:0, ... (default: the first GPU, else cpu)")
+    parser.add_argument("--depth", type=int, default=7, help="octree depth of the main configuration")
+    parser.add_argument("--repeat", type=int, default=20, help="timed repeats per measurement")
+    parser.add_argument("--quick", action="store_true", help="only the main configuration")
+    parser.add_argument("--out", default=None, help="write the full results as JSON here")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    return run(parser.parse_args())
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# One call on a GPU machine (the device tool): set up, check on CUDA, then time.
+#   bash bench/gpu_session.sh [tests] [engine] [service] [accuracy] ...
+# Expects warp-lang and the wheels unpacked by ../shared/gpu/setup.sh (sourced before), the shared meshes
+# copied into $BADF_SHARED_DATA (default .gpudata/), and writes logs and JSON under $OUT.
+set -uo pipefail
+out="${OUT:-$PWD/bench-out}"
+mkdir -p "$out"
+export BADF_SHARED_DATA="${BADF_SHARED_DATA:-$PWD/.gpudata}"
+python3 -m pip install -q --no-deps --no-build-isolation --no-index -e . >/dev/null 2>&1 || echo "pip install -e . failed"
+nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
+for step in "$@"; do
+  echo "=== $step"
+  case "$step" in
+    tests)
+      python3 -m pytest -q -p no:cacheprovider -k cuda tests/test_engine.py tests/test_engine_inputs.py \
+        2>&1 | tee "$out/pytest-cuda.log" | tail -25 ;;
+    engine)
+      python3 -m badf.bench.engine --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --out "$out/engine-bunny.json" \
+        2>&1 | tee "$out/engine-bunny.log" ;;
+    *)
+      echo "unknown step $step" ;;
+  esac
+done
