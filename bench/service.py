@@ -202,31 +202,22 @@ def _service(device: str) -> Iterator[tuple]:
 
     from badf.client import Client
     from badf.protocol import zenoh_config
-    from badf.server import WorkerSettings, run_worker
+    from badf.server import WorkerSettings, end_process, worker_process
 
     endpoint, echo_endpoint = _free_endpoint(), _free_endpoint()
-    worker_ready, echo_ready = _SPAWN.Event(), _SPAWN.Event()
     settings = WorkerSettings(worker_id="bench", listen=(endpoint,), device=device, stats_interval_s=3600.0)
-    processes = [
-        (_SPAWN.Process(target=run_worker, args=(settings, worker_ready), daemon=True), worker_ready, "worker"),
-        (_SPAWN.Process(target=_echo_router, args=(echo_endpoint, echo_ready), daemon=True), echo_ready, "echo"),
-    ]
-    for process, _, _ in processes:
-        process.start()
+    echo_ready = _SPAWN.Event()
+    echo_router = _SPAWN.Process(target=_echo_router, args=(echo_endpoint, echo_ready), daemon=True)
+    echo_router.start()
     try:
-        for process, ready, what in processes:
-            _wait(ready, process, what)
-        echo_config = zenoh_config(mode="client", connect=[echo_endpoint], connect_timeout_s=60)
-        with Client(endpoint, timeout=120) as client, zenoh.open(echo_config) as echo:
-            yield client, echo
+        with worker_process(settings, start_timeout_s=600.0):
+            if not echo_ready.wait(60):
+                raise SystemExit("badf bench service: the echo router did not start within 60 s")
+            echo_config = zenoh_config(mode="client", connect=[echo_endpoint], connect_timeout_s=60)
+            with Client(endpoint, timeout=120) as client, zenoh.open(echo_config) as echo:
+                yield client, echo
     finally:
-        for process, _, _ in processes:
-            if process.is_alive():
-                process.terminate()
-                process.join(30)
-            if process.is_alive():
-                process.kill()
-                process.join(30)
+        end_process(echo_router)
 
 
 def _echo(session, request_bytes: int, reply_bytes: int) -> None:
@@ -260,15 +251,6 @@ def _echo_router(endpoint: str, ready) -> None:
         session.declare_queryable(_ECHO_KEY, answer)
         ready.set()
         stop.wait()
-
-
-def _wait(ready, process: multiprocessing.Process, what: str, timeout: float = 600.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not ready.wait(0.1):
-        if not process.is_alive():
-            raise SystemExit(f"badf bench service: the {what} process exited with status {process.exitcode}")
-        if time.monotonic() > deadline:
-            raise SystemExit(f"badf bench service: the {what} process was not ready after {timeout:.0f} s")
 
 
 def _free_endpoint() -> str:

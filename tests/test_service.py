@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import free_endpoint, wait_until
-from service_processes import SPAWN, stop, stream_until_killed, worker_process
+from service_processes import SPAWN, stream_until_killed, worker_on
 from tolerances import EXACT_DISTANCE
 
 from badf.client import Client, RemoteObject
@@ -42,7 +42,7 @@ from badf.protocol import (
     error_for_code,
     zenoh_config,
 )
-from badf.server import adf
+from badf.server import adf, end_process
 from badf.server.adf import DistanceField
 
 ALL_OUTPUTS = ("distance", "closest_point", "normal", "face")
@@ -74,7 +74,7 @@ def shared_endpoint() -> str:
 
 @pytest.fixture(scope="module")
 def shared_worker(shared_endpoint: str):
-    with worker_process(shared_endpoint, worker_id="shared") as process:
+    with worker_on(shared_endpoint, worker_id="shared") as process:
         yield process
 
 
@@ -231,7 +231,7 @@ def test_bad_input_is_answered_and_changes_nothing(client: Client, shared_endpoi
 
 def test_a_killed_worker_is_a_clear_error(endpoint: str) -> None:
     vertices, faces = meshes.load("spot")
-    with worker_process(endpoint, worker_id="doomed") as process, Client(endpoint, timeout=5) as client:
+    with worker_on(endpoint, worker_id="doomed") as process, Client(endpoint, timeout=5) as client:
         remote = client.register("cow", vertices, faces, depth=5)
         asking = threading.Event()
         outcome: list[BaseException] = []
@@ -262,7 +262,7 @@ def test_a_killed_worker_is_a_clear_error(endpoint: str) -> None:
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_worker_shuts_down_cleanly_on_signals(endpoint: str, signum: int) -> None:
     vertices, faces = meshes.load("spot")
-    with worker_process(endpoint, worker_id="polite") as process, Client(endpoint, timeout=5) as client:
+    with worker_on(endpoint, worker_id="polite") as process, Client(endpoint, timeout=5) as client:
         remote = client.register("cow", vertices, faces, depth=5)
         os.kill(process.pid, signum)  # the worker this test started
         process.join(60)
@@ -273,7 +273,7 @@ def test_worker_shuts_down_cleanly_on_signals(endpoint: str, signum: int) -> Non
 
 def test_a_client_killed_mid_stream_leaves_the_worker_serving(endpoint: str) -> None:
     cow, cow_faces = meshes.load("spot")
-    with worker_process(endpoint, worker_id="sturdy"), Client(endpoint, timeout=60) as client:
+    with worker_on(endpoint, worker_id="sturdy"), Client(endpoint, timeout=60) as client:
         remote = client.register("cow", cow, cow_faces, depth=5)
         local = DistanceField(cow, cow_faces, depth=5, device="cpu")
         streamed = SPAWN.Event()
@@ -288,7 +288,7 @@ def test_a_client_killed_mid_stream_leaves_the_worker_serving(endpoint: str) -> 
             streamer.kill()
             streamer.join(30)
         finally:
-            stop(streamer)
+            end_process(streamer)
         points = sample_points(cow, 400)
         for step in range(1, 4):
             bent = cow * (1.0 + 0.02 * step)
@@ -307,3 +307,17 @@ def test_a_client_killed_mid_stream_leaves_the_worker_serving(endpoint: str) -> 
 def _settled(remote: RemoteObject) -> bool:
     first = remote.info()
     return first.frame == remote.info().frame and first.frames_applied + first.frames_dropped == first.frame
+
+
+def test_a_taken_port_is_a_clear_error() -> None:
+    import socket
+
+    from badf.server import WorkerSettings, worker_process
+
+    with socket.socket() as squatter:
+        squatter.bind(("127.0.0.1", 0))
+        squatter.listen()
+        taken = f"tcp/127.0.0.1:{squatter.getsockname()[1]}"
+        with pytest.raises(WorkerUnavailableError, match="exited with status 1"):
+            with worker_process(WorkerSettings(worker_id="late", listen=(taken,), device="cpu")):
+                pass
