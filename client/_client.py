@@ -240,7 +240,7 @@ class Client:
         seconds = self.timeout if timeout is None else timeout
         try:
             replies = self._session.liveliness().get(self.keys.every_worker_token, timeout=seconds)
-            return [self.keys.worker_of_token(str(reply.ok.key_expr)) for reply in replies if reply.ok is not None]
+            return [str(reply.ok.key_expr).rsplit("/", 1)[-1] for reply in replies if reply.ok is not None]
         except zenoh.ZError:
             return []
 

@@ -86,10 +86,3 @@ class KeySpace:
     @property
     def every_object_info(self) -> str:
         return f"{self.namespace}/obj/*/info"
-
-    def worker_of_token(self, key: str) -> str:
-        """The worker id in a liveliness token's key `{ns}/worker/{worker}`."""
-        prefix = f"{self.namespace}/worker/"
-        if not key.startswith(prefix):
-            raise InvalidNameError(f"{key!r} is not a worker token under {self.namespace!r}")
-        return check_name(key[len(prefix) :], what="worker id")

@@ -360,7 +360,6 @@ def test_key_space() -> None:
     keys = KeySpace("lab/badf")
     assert keys.object_query("bunny") == "lab/badf/obj/bunny/query"
     assert keys.worker_register("w-1") == "lab/badf/worker/w-1/register"
-    assert keys.worker_of_token("lab/badf/worker/w-1") == "w-1"
     for bad in ("", "a//b", "a/*", "a b"):
         with pytest.raises(InvalidNameError):
             KeySpace(bad)
