@@ -8,7 +8,6 @@ stage's events (CUDA) or the wall time of the synchronous CPU launches; "wall" i
 from the call to the end of the device work, Python and read-backs included.
 """
 
-from __future__ import annotations
 
 import argparse
 import json
@@ -53,15 +52,12 @@ def measure_field(vertices, faces, *, device: str, repeat: int, **options) -> di
     for i in range(repeat):
         builds += _time_wall(build, device, 1)
         build_stages.append(field.stats()["times_ms"])
+    # a new frame every time: the wobble advances 0.02 of its period per frame
     frames = [deform(vertices, 0.02 * k) for k in range(repeat + 1)]
     update_stages = []
-
-    def update(i):
-        field.update(frames[i + 1])
-
     updates = []
-    for i in range(repeat):
-        updates += _time_wall(update, device, 1)
+    for i in range(1, repeat + 1):
+        updates += _time_wall(lambda _, frame=frames[i]: field.update(frame), device, 1)
         update_stages.append(field.stats()["times_ms"])
     stats = field.stats()
 
@@ -79,7 +75,9 @@ def measure_field(vertices, faces, *, device: str, repeat: int, **options) -> di
         "update_stages_ms": stage_medians(update_stages),
         "counts": stats["counts"],
         "device_bytes": stats["device_bytes"],
+        "memory_bytes": stats["memory_bytes"],
         "field": field,
+        "vertices": frames[repeat],
     }
 
 
@@ -144,6 +142,70 @@ def measure_dense_baseline(vertices, faces, *, device: str, repeat: int, resolut
     }
 
 
+def measure_traversals(field, vertices, faces, *, device: str, repeat: int) -> dict:
+    """Nearest-face search at the field's corners: this engine's BVH against Warp's wp.Mesh BVH
+    (mesh_query_point_no_sign), each from no bound and from the bound of the corner's known nearest face
+    (what coherence gives). Distances only, no sign; mismatches are counted against each other."""
+    import warp as wp
+
+    from badf.server.adf._bvh import BvhView, leaf_distance_sq, nearest_leaf
+
+    @wp.kernel(enable_backward=False)
+    def ours(bvh: BvhView, points: wp.array(dtype=wp.vec3), seeds: wp.array(dtype=wp.int32), use_seed: int,
+             out: wp.array(dtype=wp.float32)):
+        i = wp.tid()
+        p = points[i]
+        best = int(-1)
+        best_sq = float(3.0e38)
+        if use_seed != 0:
+            best = seeds[i]
+            best_sq = leaf_distance_sq(bvh, best, p)
+        leaf, d_sq = nearest_leaf(bvh, p, best, best_sq)
+        out[i] = wp.sqrt(d_sq)
+
+    @wp.kernel(enable_backward=False)
+    def warps(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), bound: wp.array(dtype=wp.float32), use_seed: int,
+              out: wp.array(dtype=wp.float32)):
+        i = wp.tid()
+        p = points[i]
+        max_dist = float(1.0e30)
+        if use_seed != 0:
+            max_dist = bound[i] * 1.0001 + 1.0e-30
+        q = wp.mesh_query_point_no_sign(mesh, p, max_dist)
+        if q.result:
+            out[i] = wp.length(p - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
+        else:
+            out[i] = bound[i]
+
+    positions, values, nearest_faces = field.corner_samples()
+    centre = np.asarray(field.info()["domain"]["centre"])
+    local = (positions - centre).astype(np.float32)
+    points = wp.array(local, dtype=wp.vec3, device=device)
+    leaf_of_face = np.empty(len(faces), np.int32)
+    leaf_of_face[field._bvh.leaf_faces()] = np.arange(len(faces), dtype=np.int32)
+    seeds = wp.array(leaf_of_face[nearest_faces], dtype=wp.int32, device=device)
+    bound = wp.array(np.abs(values).astype(np.float32), dtype=wp.float32, device=device)
+    mesh = wp.Mesh(points=wp.array((vertices - centre).astype(np.float32), dtype=wp.vec3, device=device),
+                   indices=wp.array(faces.reshape(-1), dtype=wp.int32, device=device))
+    bvh = field._bvh.view()
+    n = len(local)
+    results = {}
+    out = {"corners": n}
+    for name, kernel, first in (("engine_bvh", ours, bvh), ("warp_mesh", warps, mesh.id)):
+        for use_seed in (0, 1):
+            d = wp.zeros(n, dtype=wp.float32, device=device)
+            launch = lambda _: wp.launch(kernel, dim=n, inputs=[first, points, seeds if kernel is ours else bound,
+                                                                 use_seed], outputs=[d], device=device)
+            launch(0)
+            label = f"{name}_{'bounded' if use_seed else 'unbounded'}_ms"
+            out[label] = round(_median(_time_wall(launch, device, repeat)), 4)
+            results[label] = d.numpy()
+    reference = results["engine_bvh_unbounded_ms"]
+    for label, d in results.items():
+        out[label.replace("_ms", "_mismatches")] = int(np.sum(np.abs(d - reference) > 1e-6 * (1 + np.abs(reference))))
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     import warp as wp
 
@@ -174,9 +236,10 @@ def run(args: argparse.Namespace) -> int:
     rows = []
     for options in configs:
         result = measure_field(vertices, faces, device=device, repeat=repeat, **options)
-        field = result.pop("field")
+        field, current = result.pop("field"), result.pop("vertices")
         if options == configs[0]:
-            result.update(measure_queries(field, vertices, device=device, repeat=repeat))
+            result.update(measure_queries(field, current, device=device, repeat=repeat))
+            result["traversal"] = measure_traversals(field, current, faces, device=device, repeat=repeat)
         report["configurations"].append(result)
         rows.append([
             ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in options.items()),
@@ -192,6 +255,8 @@ def run(args: argparse.Namespace) -> int:
         ["options", "build gpu ms", "build wall ms", "update gpu ms", "update wall ms", "corners", "MiB"],
         rows,
     )
+    print("memory of the first configuration (bytes):", first["memory_bytes"])
+    print("traversal at the corners (ms):", first["traversal"])
     print("stages of the first configuration, update (ms):", first["update_stages_ms"])
     print("stages of the first configuration, build (ms):", first["build_stages_ms"])
     print(f"queries of 65,536 points: adf {first['query_adf_ms']} ms, exact {first['query_exact_ms']} ms;"

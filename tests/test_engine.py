@@ -275,3 +275,34 @@ def test_auto_sign_picks_winding_for_open_meshes_and_it_matches_the_oracle(devic
     confident = np.abs(np.abs(w) - 0.5) > 0.1
     result = field.query(points[confident], mode="exact")
     assert np.array_equal(result.distance < 0, np.abs(w[confident]) > 0.5)
+
+
+def test_slice_grid_and_crossing_cells(device):
+    vertices, faces = meshes.load("spot")
+    depth = 5
+    field = DistanceField(vertices, faces, depth=depth, device=device)
+    centre, side = domain_of(field)
+    position = float(centre[1] + 0.05 * side)
+    cut = field.slice("y", position, resolution=(48, 32))
+    assert cut.distance.shape == (32, 48) and cut.axis == "y"
+    # the grid is the ADF at the grid points
+    from badf.server.adf._slice import plane_grid
+
+    points = plane_grid(1, position, cut.u_range, cut.v_range, 32, 48)
+    np.testing.assert_array_equal(cut.distance.reshape(-1), field.query(points, mode="adf").distance)
+    # and within a finest cell of the oracle near the surface
+    truth = oracle.signed_distance(points, vertices, faces)
+    cell = field.info()["domain"]["finest_cell"]
+    near = np.abs(truth) < cell
+    assert np.all(np.abs(cut.distance.reshape(-1) - truth)[near] < tol.ADF_NEAR_SURFACE * cell)
+    # cells: every node crossing the plane, computed independently from the node list
+    levels, cells = field.octree_cells()
+    size = side / (1 << levels)
+    lower = centre[1] - side / 2 + cells[:, 1] * size
+    crossing = (lower <= position) & (position < lower + size)
+    nodes = cut.cell_level[~cut.cell_is_empty]
+    assert np.all(cut.cell_is_leaf[cut.cell_is_empty]) and np.all(cut.cell_level[cut.cell_is_leaf & ~cut.cell_is_empty] == depth)
+    assert np.array_equal(np.sort(nodes), np.sort(levels[crossing]))
+    assert np.all((cut.cell_lower[:, 1] <= position + 1e-6) & (position <= cut.cell_upper[:, 1] + 1e-6))
+    shallow = field.slice("y", position, resolution=8, max_level=3)
+    assert shallow.cell_level.max() <= 3 and len(shallow.cell_level) < len(cut.cell_level)

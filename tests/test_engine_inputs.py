@@ -82,3 +82,21 @@ def test_empty_query_and_unrequested_outputs(device):
     assert empty.distance.shape == (0,) and empty.face.shape == (0,)
     only_normal = field.query(np.ones((4, 3)), outputs=("normal",))
     assert only_normal.distance is None and only_normal.normal.shape == (4, 3)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"axis": "w"}, "axis must be 'x', 'y' or 'z'"),
+        ({"position": float("nan")}, "position must be finite"),
+        ({"resolution": 0}, "resolution must be 1..2048"),
+        ({"resolution": (10, 5000)}, "resolution must be 1..2048"),
+        ({"max_level": 9}, r"max_level must be an integer in 0..3"),
+    ],
+)
+def test_slice_rejects_bad_requests(kwargs, message):
+    vertices, faces = meshes.sphere()
+    field = DistanceField(vertices, faces, depth=3, device="cpu")
+    args = {"axis": "x", "position": 0.0} | kwargs
+    with pytest.raises(InvalidInputError, match=message):
+        field.slice(args.pop("axis"), args.pop("position"), **args)

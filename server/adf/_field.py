@@ -24,10 +24,15 @@ from badf.server.adf._inputs import (
     check_choice,
     check_depth,
     check_flag,
+    check_axis,
+    check_finite_number,
     check_halo,
+    check_level,
     check_outputs,
+    check_resolution,
 )
 from badf.server.adf._octree import Octree
+from badf.server.adf._slice import AXES, Slice, SliceCells, plane_grid
 from badf.server.adf._sign import (
     SIGN_METHODS,
     Pseudonormals,
@@ -178,6 +183,7 @@ class DistanceField:
         self._normals = Pseudonormals(self._sign, self._topology, self._faces, b)
         self._corners = CornerField(b)
         self._points = PointQuery(b)
+        self._slice_cells = SliceCells(b)
         self._apply(local, domain_moved=True)
 
     # -- public API -----------------------------------------------------------------------------------
@@ -240,6 +246,40 @@ class DistanceField:
         self._counters.query_points += count
         self._counters.last_query_ms = (time.perf_counter() - start_time) * 1e3
         return result
+
+    def slice(
+        self,
+        axis: Literal["x", "y", "z"] | int,
+        position: float,
+        *,
+        resolution: int | tuple[int, int] = 256,
+        max_level: int | None = None,
+    ) -> Slice:
+        """The field on the plane {axis = position} over the domain's extent, and the octree cells it crosses.
+
+        resolution: columns x rows of the distance grid (an int for a square grid), each 1..2048.
+        max_level: leave out cells deeper than this level (None: all, down to the finest).
+        """
+        axis_index = check_axis(axis)
+        position = check_finite_number(position, "position")
+        rows, cols = check_resolution(resolution)
+        max_level = self._depth if max_level is None else check_level(max_level, self._depth)
+        centre, half = self._domain.centre, self._domain.side / 2.0
+        u_axis, v_axis = [a for a in range(3) if a != axis_index]
+        u_range = (float(centre[u_axis] - half), float(centre[u_axis] + half))
+        v_range = (float(centre[v_axis] - half), float(centre[v_axis] + half))
+        grid = plane_grid(axis_index, position, u_range, v_range, rows, cols)
+        distance = self.query(grid, mode="adf").distance.reshape(rows, cols)
+        o = self._octree
+        with wp.ScopedDevice(self._device):
+            lower, upper, level, leaf, empty = self._slice_cells.cells(
+                o.node_keys, o.child_mask, o.internal_count, self._depth, axis_index,
+                float(position - centre[axis_index]), self._domain.side, max_level,
+            )
+        shift = centre.astype(np.float32)
+        return Slice(axis=AXES[axis_index], position=position, distance=distance, u_range=u_range, v_range=v_range,
+                     cell_lower=lower + shift, cell_upper=upper + shift, cell_level=level, cell_is_leaf=leaf,
+                     cell_is_empty=empty, frame=self._frame)
 
     @property
     def frame(self) -> int:

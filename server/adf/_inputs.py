@@ -142,3 +142,39 @@ def check_flag(value, name: str) -> bool:
     if not isinstance(value, (bool, np.bool_)):
         raise InvalidInputError(f"{name} must be True or False, got {value!r}")
     return bool(value)
+
+
+def check_axis(axis) -> int:
+    if isinstance(axis, str) and axis in ("x", "y", "z"):
+        return "xyz".index(axis)
+    if isinstance(axis, (int, np.integer)) and not isinstance(axis, bool) and 0 <= int(axis) <= 2:
+        return int(axis)
+    raise InvalidInputError(f"axis must be 'x', 'y' or 'z' (or 0, 1, 2), got {axis!r}")
+
+
+def check_finite_number(value, name: str) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"{name} must be a number, got {value!r}") from None
+    if not np.isfinite(number):
+        raise InvalidInputError(f"{name} must be finite, got {value!r}")
+    return number
+
+
+def check_resolution(resolution, limit: int = 2048) -> tuple[int, int]:
+    """(rows, cols) from an int (square) or a (cols, rows) pair, each 1..limit."""
+    pair = (resolution, resolution) if isinstance(resolution, (int, np.integer)) else resolution
+    try:
+        cols, rows = (int(x) for x in pair)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"resolution must be an int or (cols, rows), got {resolution!r}") from None
+    if isinstance(resolution, bool) or not (1 <= cols <= limit and 1 <= rows <= limit):
+        raise InvalidInputError(f"resolution must be 1..{limit} per side, got {resolution!r}")
+    return rows, cols
+
+
+def check_level(level, depth: int) -> int:
+    if isinstance(level, bool) or not isinstance(level, (int, np.integer)) or not 0 <= int(level) <= depth:
+        raise InvalidInputError(f"max_level must be an integer in 0..{depth}, got {level!r}")
+    return int(level)
