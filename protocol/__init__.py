@@ -35,6 +35,8 @@ from badf.protocol._keys import MAX_NAME_LENGTH, KeySpace, check_name
 from badf.protocol._limits import DEFAULT_LIMITS, Limits
 from badf.protocol._messages import (
     AXES,
+    CELL_EMPTY,
+    CELL_LEAF,
     MESSAGE_TYPES,
     QUERY_MODES,
     QUERY_OUTPUTS,
@@ -69,6 +71,8 @@ from badf.protocol._wire import PROTOCOL_VERSION
 
 __all__ = [
     "AXES",
+    "CELL_EMPTY",
+    "CELL_LEAF",
     "DEFAULT_ENDPOINT",
     "DEFAULT_LIMITS",
     "MAX_NAME_LENGTH",

@@ -17,7 +17,7 @@ class Limits:
     max_faces: int = 20_000_000
     max_points: int = 4_194_304
     max_cells: int = 4_194_304
-    max_slice_resolution: int = 4096
+    max_slice_resolution: int = 2048
     max_message_bytes: int = 512 * 1024 * 1024
     max_metadata_bytes: int = 64 * 1024
 

@@ -49,6 +49,9 @@ AXES: tuple[str, ...] = get_args(Axis)
 MAX_DEPTH = 30
 MAX_HALO = 8
 MAX_ERROR_MESSAGE_LENGTH = 4000
+# Bits of SliceReply.cell_flags.
+CELL_LEAF = 1
+CELL_EMPTY = 2
 
 
 class MessageKind(IntEnum):
@@ -553,9 +556,10 @@ class QueryReply(_Message):
 
 @dataclass(frozen=True)
 class SliceRequest(_Message):
-    """A planar slice of the field: the plane `axis` = `position` (world units), sampled on a
-    `resolution` x `resolution` grid; `cells` asks for the octree cells the plane crosses (only those with
-    a level in `levels` = (lowest, highest), or all when None); `corners` for their corner sample points."""
+    """A planar slice of the field: the plane `axis` = `position` (world units) across the object's domain,
+    sampled on a `resolution` x `resolution` grid; `cells` asks for the octree cells the plane crosses (only
+    those with a level in `levels` = (lowest, highest), or all when None); `corners` for corner sample
+    points (not served yet: the engine has no per-plane corner list)."""
 
     KIND: ClassVar[MessageKind] = MessageKind.SLICE_REQUEST
     name: str
@@ -610,9 +614,11 @@ class SliceRequest(_Message):
 class SliceReply(_Message):
     """Signed distances on the slice plane and, when asked, the octree cells it crosses.
 
-    The grid's rows follow the plane's second axis and its columns the first, the plane's axes being the
-    two other than `axis` in x, y, z order (x: (y, z); y: (x, z); z: (x, y)). `extent` is
-    ((first_min, second_min), (first_max, second_max)) in world units: the centres of the corner samples.
+    The plane's axes (u, v) are the two other than `axis` in x, y, z order (x: (y, z); y: (x, z); z: (x, y)).
+    The grid's rows run along v and its columns along u. `extent` is ((u_min, v_min), (u_max, v_max)) in
+    world units, the region the grid covers; sample (i, j) is at u = u_min + (j + 0.5) (u_max - u_min) / W,
+    v likewise with i and H. Cells: world-space boxes (min corner, max corner), octree levels (0 = the
+    domain cube) and flags (CELL_LEAF, CELL_EMPTY: a leaf holding no surface, interpolated from its parent).
     """
 
     KIND: ClassVar[MessageKind] = MessageKind.SLICE_REPLY
@@ -620,6 +626,7 @@ class SliceReply(_Message):
         _Slot("grid", "float", ("H", "W")),  # (H, W) float32 signed distance, negative inside
         _Slot("cell_boxes", "float", ("K", 2, 3), optional=True),  # (K, 2, 3) float32: min corner, max corner
         _Slot("cell_levels", "level", ("K",), optional=True),  # (K,) uint8 octree level of each cell
+        _Slot("cell_flags", "level", ("K",), optional=True),  # (K,) uint8: CELL_LEAF | CELL_EMPTY bits
         _Slot("corner_points", "float", ("C", 3), optional=True),  # (C, 3) float32 corner sample points
     )
     name: str
@@ -630,6 +637,7 @@ class SliceReply(_Message):
     grid: np.ndarray
     cell_boxes: np.ndarray | None = None
     cell_levels: np.ndarray | None = None
+    cell_flags: np.ndarray | None = None
     corner_points: np.ndarray | None = None
 
     def __post_init__(self) -> None:
@@ -647,8 +655,8 @@ class SliceReply(_Message):
         low = (_check_number(owner, "extent", u0), _check_number(owner, "extent", v0))
         high = (_check_number(owner, "extent", u1), _check_number(owner, "extent", v1))
         _set(self, "extent", (low, high))
-        if (self.cell_boxes is None) != (self.cell_levels is None):
-            raise ShapeError(f"{owner}: cell_boxes and cell_levels come together or not at all")
+        if len({self.cell_boxes is None, self.cell_levels is None, self.cell_flags is None}) > 1:
+            raise ShapeError(f"{owner}: cell_boxes, cell_levels and cell_flags come together or not at all")
         _canonical_arrays(self)
 
     def metadata(self) -> dict[str, Any]:

@@ -22,6 +22,8 @@ import numpy as np
 import zenoh
 
 from badf.protocol import (
+    CELL_EMPTY,
+    CELL_LEAF,
     BadfError,
     Deleted,
     DeleteRequest,
@@ -64,6 +66,8 @@ class DistanceFieldLike(Protocol):
     def update(self, vertices: np.ndarray) -> int: ...
 
     def query(self, points: np.ndarray, *, mode: str, outputs: tuple[str, ...]) -> Any: ...
+
+    def slice(self, axis: str, position: float, *, resolution: int, max_level: int) -> Any: ...
 
     def info(self) -> dict[str, Any]: ...
 
@@ -361,7 +365,27 @@ class ServedObject:
     def _run_slice(self, payload: zenoh.ZBytes | None) -> SliceReply:
         request = decode(request_bytes(payload, self._limits), SliceRequest, limits=self._limits)
         self._check_addressed_to_me(request.name)
-        raise NotSupportedError("slices need the engine's DistanceField.slice(), which it does not have yet")
+        if request.corners:
+            raise NotSupportedError("corner sample points on a slice are not served yet; ask with corners=False")
+        lowest, highest = request.levels if request.levels is not None else (0, self._options.depth)
+        with engine_errors():
+            cut = self._field.slice(
+                request.axis,
+                request.position,
+                resolution=request.resolution,
+                max_level=min(highest, self._options.depth),
+            )
+        cells: dict[str, np.ndarray] = {}
+        if request.cells:
+            keep = cut.cell_level >= lowest
+            cells = {
+                "cell_boxes": np.stack([cut.cell_lower[keep], cut.cell_upper[keep]], axis=1),
+                "cell_levels": cut.cell_level[keep],
+                "cell_flags": cut.cell_is_leaf[keep] * np.uint8(CELL_LEAF)
+                | cut.cell_is_empty[keep] * np.uint8(CELL_EMPTY),
+            }
+        extent = ((cut.u_range[0], cut.v_range[0]), (cut.u_range[1], cut.v_range[1]))
+        return SliceReply(self.name, self._frame, request.axis, request.position, extent, cut.distance, **cells)
 
     def _answer_delete(self, query: zenoh.Query) -> None:
         answer(query, self._keys.object_delete(self.name), lambda: self._delete(query.payload))

@@ -14,6 +14,18 @@ import numpy as np
 
 
 @dataclass
+class StandInSlice:
+    distance: np.ndarray
+    u_range: tuple[float, float]
+    v_range: tuple[float, float]
+    cell_lower: np.ndarray
+    cell_upper: np.ndarray
+    cell_level: np.ndarray
+    cell_is_leaf: np.ndarray
+    cell_is_empty: np.ndarray
+
+
+@dataclass
 class StandInResult:
     frame: int
     distance: np.ndarray | None = None
@@ -67,6 +79,24 @@ class StandInField:
         if "face" in outputs:
             result.face = np.zeros(len(points), dtype=np.int32)
         return result
+
+    def slice(self, axis: str, position: float, *, resolution: int, max_level: int) -> StandInSlice:
+        """Nearest-vertex distances on the plane over [-1, 1]^2, and one cell per level up to max_level
+        (levels 0..max_level, nested boxes [-2**-l, 2**-l]^3; the deepest is a leaf)."""
+        axis_index = "xyz".index(axis)
+        centres = -1.0 + (np.arange(resolution) + 0.5) * 2.0 / resolution
+        v, u = np.meshgrid(centres, centres, indexing="ij")
+        points = np.zeros((resolution * resolution, 3), np.float32)
+        plane_axes = [a for a in range(3) if a != axis_index]
+        points[:, plane_axes[0]], points[:, plane_axes[1]], points[:, axis_index] = u.ravel(), v.ravel(), position
+        distance = self.query(points).distance.reshape(resolution, resolution)
+        levels = np.arange(max_level + 1, dtype=np.uint8)
+        half = 2.0 ** -levels.astype(np.float32)
+        return StandInSlice(
+            distance, (-1.0, 1.0), (-1.0, 1.0),
+            np.repeat(-half[:, None], 3, axis=1), np.repeat(half[:, None], 3, axis=1), levels,
+            levels == max_level, np.zeros(len(levels), bool),
+        )  # fmt: skip
 
     def info(self) -> dict:
         return {"sign": "none", "vertex_count": self.vertex_count, "face_count": self.face_count}

@@ -104,6 +104,7 @@ def samples() -> dict[type, object]:
             rng.normal(size=(4, 5)).astype(np.float32),
             cell_boxes=rng.normal(size=(6, 2, 3)).astype(np.float32),
             cell_levels=np.arange(6, dtype=np.uint8),
+            cell_flags=np.array([0, 1, 3, 0, 1, 1], np.uint8),
             corner_points=rng.normal(size=(8, 3)).astype(np.float32),
         ),  # fmt: skip
         InfoRequest: InfoRequest("bunny"),
@@ -221,7 +222,7 @@ def test_wrong_dtypes() -> None:
     with pytest.raises(DtypeError):
         RegisterRequest("a", VERTICES, FACES.astype(np.float32))
     with pytest.raises(DtypeError):
-        SliceReply("a", 0, "x", 0.0, ((0, 0), (1, 1)), np.zeros((2, 2)), np.zeros((1, 2, 3)), np.zeros(1))
+        SliceReply("a", 0, "x", 0.0, ((0, 0), (1, 1)), np.zeros((2, 2)), np.zeros((1, 2, 3)), np.zeros(1), np.zeros(1))
 
 
 def test_wrong_shapes() -> None:

@@ -18,6 +18,8 @@ from tolerances import EXACT_DISTANCE
 
 from badf.client import Client, RemoteObject
 from badf.protocol import (
+    CELL_EMPTY,
+    CELL_LEAF,
     QUERY_MODES,
     QUERY_OUTPUTS,
     SIGN_METHODS,
@@ -109,6 +111,29 @@ def test_registered_meshes_answer_like_the_engine(client: Client, mesh: str, opt
     assert info.field_info["sign"] == local.info()["sign"]
     assert (info.vertex_count, info.face_count) == (local.vertex_count, local.face_count)
     assert_same_answers(remote, local, sample_points(vertices))
+
+
+def test_slices_answer_like_the_engine(client: Client) -> None:
+    vertices, faces = meshes.load("spot")
+    remote = client.register("cow", vertices, faces, depth=5)
+    local = DistanceField(vertices, faces, depth=5, device="cpu")
+    bent = vertices * 1.02
+    remote.update(bent)
+    local.update(bent)
+    position = float(bent[:, 2].mean())
+    served = remote.slice("z", position, resolution=40, levels=(2, 4))
+    direct = local.slice("z", position, resolution=40, max_level=4)
+    assert served.frame == 1 and served.grid.shape == (40, 40)
+    np.testing.assert_array_equal(served.grid, direct.distance)
+    assert served.extent == ((direct.u_range[0], direct.v_range[0]), (direct.u_range[1], direct.v_range[1]))
+    keep = direct.cell_level >= 2
+    np.testing.assert_array_equal(served.cell_levels, direct.cell_level[keep])
+    np.testing.assert_array_equal(served.cell_boxes[:, 0], direct.cell_lower[keep])
+    np.testing.assert_array_equal(served.cell_boxes[:, 1], direct.cell_upper[keep])
+    np.testing.assert_array_equal((served.cell_flags & CELL_LEAF) > 0, direct.cell_is_leaf[keep])
+    np.testing.assert_array_equal((served.cell_flags & CELL_EMPTY) > 0, direct.cell_is_empty[keep])
+    with pytest.raises(LimitExceededError):
+        remote.slice("z", position, resolution=2048 + 1)
 
 
 def test_several_objects_live_side_by_side(client: Client) -> None:

@@ -17,6 +17,7 @@ from stand_in_field import StandInField, nearest_vertex
 
 from badf.client import Client
 from badf.protocol import (
+    CELL_LEAF,
     BadfError,
     ErrorReply,
     Frame,
@@ -253,7 +254,7 @@ def test_bad_requests_get_specific_errors_and_change_nothing(
         assert isinstance(error, expected), f"{key}: expected {expected.__name__}, got {type(error).__name__}: {error}"
         assert error.message
     with pytest.raises(NotSupportedError):
-        obj.slice("z", 0.0)
+        obj.slice("z", 0.0, corners=True)
     info = obj.info()
     assert (info.frame, info.frames_applied, info.frames_rejected) == (1, 1, 2)
     assert info.last_error is not None
@@ -262,6 +263,22 @@ def test_bad_requests_get_specific_errors_and_change_nothing(
     np.testing.assert_array_equal(after.distance, before.distance)
     np.testing.assert_array_equal(after.normal, before.normal)
     assert [o.name for o in client.objects()] == ["blob"]
+
+
+def test_slices_pass_through(worker: ThreadWorker, client: Client) -> None:
+    obj = client.register("blob", VERTICES, FACES, depth=4)
+    obj.update(VERTICES + 1)
+    cut = obj.slice("y", 0.25, resolution=16, levels=(2, 9))
+    assert (cut.frame, cut.axis, cut.position, cut.extent) == (1, "y", 0.25, ((-1.0, -1.0), (1.0, 1.0)))
+    assert cut.grid.shape == (16, 16) and cut.grid.dtype == np.float32
+    column_centre, row_centre = -1.0 + 5.5 / 8, -1.0 + 2.5 / 8  # sample (2, 5): u = x, v = z for a y-plane
+    expected = expected_distance(np.array([[column_centre, 0.25, row_centre]], np.float32), VERTICES + 1)[0]
+    assert cut.grid[2, 5] == pytest.approx(expected, rel=1e-5)
+    np.testing.assert_array_equal(cut.cell_levels, [2, 3, 4])  # levels 0..4 (depth caps 9), lowest 2
+    np.testing.assert_array_equal(cut.cell_flags, [0, 0, CELL_LEAF])
+    np.testing.assert_allclose(cut.cell_boxes[:, 1, 0], [0.25, 0.125, 0.0625])
+    bare = obj.slice("x", 0.0, resolution=4, cells=False)
+    assert bare.cell_boxes is None and bare.cell_levels is None and bare.cell_flags is None
 
 
 def test_client_checks_before_sending(client: Client) -> None:
