@@ -7,6 +7,7 @@ import importlib
 
 _BENCHMARKS = {
     "engine": ("badf.bench.engine", "per-stage build/update times, memory, and the dense-grid baseline"),
+    "service": ("badf.bench.service", "frame + query round trip and query throughput, service beside in-process"),
 }
 
 

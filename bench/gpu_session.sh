@@ -18,6 +18,9 @@ for step in "$@"; do
     engine)
       python3 -m badf.bench.engine --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --out "$out/engine-bunny.json" \
         2>&1 | tee "$out/engine-bunny.log" ;;
+    service)
+      python3 -m badf.bench.service --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --out "$out/service-bunny.json" \
+        2>&1 | tee "$out/service-bunny.log" ;;
     *)
       echo "unknown step $step" ;;
   esac

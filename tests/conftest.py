@@ -1,9 +1,12 @@
 import pathlib
+import socket
 import sys
+import time
 
 import pytest
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
+
 
 
 def _devices() -> list[str]:
@@ -23,3 +26,26 @@ DEVICES = _devices()
 def device(request) -> str:
     """Every engine test runs on the CPU back-end, and on the first GPU when there is one."""
     return request.param
+
+
+def free_endpoint() -> str:
+    """A Zenoh TCP endpoint on 127.0.0.1 whose port was free a moment ago."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{probe.getsockname()[1]}"
+
+
+@pytest.fixture
+def endpoint() -> str:
+    return free_endpoint()
+
+
+def wait_until(condition, *, timeout: float = 20.0, what: str = "the condition") -> None:
+    """Return as soon as `condition()` is true; fail the test when `timeout` seconds pass first."""
+    deadline = time.monotonic() + timeout
+    pause = 0.002
+    while not condition():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(pause)  # polling interval, not synchronisation: the condition decides
+        pause = min(pause * 2, 0.05)

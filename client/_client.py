@@ -1,0 +1,384 @@
+"""The badf client: register objects on workers, stream their frames, and query them, over Zenoh.
+
+Every call that waits has a timeout (the client's default, or its own `timeout=`), and a worker that is
+gone is reported as WorkerUnavailableError, a worker that does not answer in time as WorkerTimeoutError.
+Errors the worker answers with are raised as the badf.protocol exception of their code, with its message.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence, TypeVar
+
+import numpy as np
+import zenoh
+
+from badf.protocol import (
+    DEFAULT_ENDPOINT,
+    DEFAULT_LIMITS,
+    BadfError,
+    Deleted,
+    DeleteRequest,
+    ErrorReply,
+    Frame,
+    FrameAck,
+    InfoRequest,
+    KeySpace,
+    Limits,
+    Message,
+    MessageError,
+    ObjectExistsError,
+    ObjectInfo,
+    ObjectNotFoundError,
+    ObjectOptions,
+    QueryMode,
+    QueryOutput,
+    QueryReply,
+    QueryRequest,
+    RefineMethod,
+    RegisterRequest,
+    SignMethod,
+    SliceReply,
+    SliceRequest,
+    VertexCountMismatchError,
+    WorkerInfo,
+    WorkerTimeoutError,
+    WorkerUnavailableError,
+    decode,
+    encode,
+    error_for_code,
+    zenoh_config,
+)
+
+M = TypeVar("M", bound=Message)
+
+
+class Client:
+    """A connection to the badf workers behind a Zenoh router (by default the embedded one of `badf serve`).
+
+    Use as a context manager, or call `close()`. `timeout` (seconds) bounds connecting and is the default
+    for every call; `namespace` must match the workers'. `config_file` is a Zenoh JSON5 file (TLS,
+    authentication) used as the base configuration.
+    """
+
+    def __init__(
+        self,
+        connect: str | Sequence[str] = DEFAULT_ENDPOINT,
+        *,
+        namespace: str = "badf",
+        timeout: float = 10.0,
+        config_file: str | None = None,
+        limits: Limits = DEFAULT_LIMITS,
+    ) -> None:
+        if not timeout > 0:
+            raise ValueError(f"timeout must be a positive number of seconds, got {timeout!r}")
+        endpoints = [connect] if isinstance(connect, str) else list(connect)
+        self.keys = KeySpace(namespace)
+        self.timeout = float(timeout)
+        self.limits = limits
+        config = zenoh_config(mode="client", connect=endpoints, config_file=config_file, connect_timeout_s=timeout)
+        try:
+            self._session = zenoh.open(config)
+        except zenoh.ZError as error:
+            raise WorkerUnavailableError(f"cannot reach a Zenoh router at {', '.join(endpoints)}: {error}") from None
+        self._publishers: dict[str, zenoh.Publisher] = {}
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the Zenoh session; objects on the workers stay."""
+        if self._session.is_closed():
+            return
+        for publisher in self._publishers.values():
+            publisher.undeclare()
+        self._publishers.clear()
+        self._session.close()
+
+    # --- objects -------------------------------------------------------------------------------------
+
+    def register(
+        self,
+        name: str,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        *,
+        depth: int = 7,
+        sign: SignMethod = "auto",
+        band: float | None = None,
+        coherence: bool = True,
+        refine: RefineMethod = "surface",
+        halo: int = 1,
+        frame: int = 0,
+        replace: bool = False,
+        worker: str | None = None,
+        timeout: float | None = None,
+    ) -> RemoteObject:
+        """Create object `name` from (N, 3) vertices and (M, 3) faces (indices into the vertices).
+
+        Placed on `worker`, or on the least-loaded worker; an existing object of that name is an
+        ObjectExistsError unless `replace`. `frame` numbers the initial vertices. Blocks until the worker
+        has built the field; see ObjectOptions for depth, sign, band, coherence, refine and halo.
+        """
+        options = ObjectOptions(depth=depth, sign=sign, band=band, coherence=coherence, refine=refine, halo=halo)
+        request = RegisterRequest(name, vertices, faces, options, frame=frame, replace=replace)
+        target = self._place(name, replace=replace, worker=worker, timeout=timeout)
+        info = self._ask(self.keys.worker_register(target), request, ObjectInfo, timeout=timeout, worker=target)
+        return RemoteObject(self, info, vertices=_owned(request.vertices, vertices), faces=_owned(request.faces, faces))
+
+    def object(self, name: str, *, timeout: float | None = None) -> RemoteObject:
+        """A handle on an existing object (registered by any client); ObjectNotFoundError if there is none."""
+        info = self._find(name, timeout=timeout)
+        if info is None:
+            raise self._nobody_answered(self.keys.object_info(name), name=name, worker=None, timeout=timeout)
+        return RemoteObject(self, info, vertices=None, faces=None)
+
+    def objects(self, *, timeout: float | None = None) -> list[ObjectInfo]:
+        """Every object of every worker in the namespace, sorted by name."""
+        infos = self._ask_all(self.keys.every_object_info, InfoRequest(), ObjectInfo, timeout=timeout)
+        return sorted(infos, key=lambda info: info.name)
+
+    def workers(self, *, timeout: float | None = None) -> list[WorkerInfo]:
+        """Every worker in the namespace, sorted by id."""
+        infos = self._ask_all(self.keys.every_worker_info, InfoRequest(), WorkerInfo, timeout=timeout)
+        return sorted(infos, key=lambda info: info.worker)
+
+    def _find(self, name: str, *, timeout: float | None) -> ObjectInfo | None:
+        key = self.keys.object_info(name)
+        for reply in self._get(key, InfoRequest(name), timeout=timeout):
+            return self._read_reply(reply, ObjectInfo, key, timeout)
+        return None
+
+    def _place(self, name: str, *, replace: bool, worker: str | None, timeout: float | None) -> str:
+        existing = self._find(name, timeout=timeout)
+        if existing is not None:
+            if not replace:
+                raise ObjectExistsError(
+                    f"object {name!r} already exists on worker {existing.worker}; pass replace=True to swap it"
+                )
+            if worker is not None and worker != existing.worker:
+                raise ObjectExistsError(
+                    f"object {name!r} lives on worker {existing.worker}, not {worker}; replace it there"
+                )
+            return existing.worker
+        if worker is not None:
+            return worker
+        workers = self.workers(timeout=timeout)
+        if not workers:
+            raise WorkerUnavailableError(
+                f"no badf worker answered in namespace {self.keys.namespace!r}; is `badf serve` running?"
+            )
+        return min(workers, key=lambda info: (info.face_count, info.object_count, info.worker)).worker
+
+    # --- requests ----------------------------------------------------------------------------------
+
+    def _get(self, key: str, request: Message, *, timeout: float | None, fan_out: bool = False) -> zenoh.Handler:
+        seconds = self.timeout if timeout is None else timeout
+        try:
+            return self._session.get(
+                key,
+                payload=encode(request),
+                timeout=seconds,
+                consolidation=zenoh.ConsolidationMode.NONE if fan_out else None,
+            )
+        except zenoh.ZError as error:
+            raise WorkerUnavailableError(f"cannot send a request on {key}: {error}") from None
+
+    def _ask(
+        self,
+        key: str,
+        request: Message,
+        expect: type[M],
+        *,
+        timeout: float | None,
+        worker: str,
+        name: str | None = None,
+    ) -> M:
+        """The one reply of `worker` to `request` on `key`, decoded as `expect`, or the error it carries."""
+        for reply in self._get(key, request, timeout=timeout):
+            return self._read_reply(reply, expect, key, timeout)
+        raise self._nobody_answered(key, name=name, worker=worker, timeout=timeout)
+
+    def _ask_all(self, key: str, request: Message, expect: type[M], *, timeout: float | None) -> list[M]:
+        return [
+            self._read_reply(reply, expect, key, timeout)
+            for reply in self._get(key, request, timeout=timeout, fan_out=True)
+        ]
+
+    def _read_reply(self, reply: zenoh.Reply, expect: type[M], key: str, timeout: float | None) -> M:
+        if reply.ok is not None:
+            return decode(reply.ok.payload.to_bytes(), expect, limits=self.limits)
+        raise self._reply_error(reply.err.payload.to_bytes(), key, timeout)
+
+    def _reply_error(self, data: bytes, key: str, timeout: float | None) -> BadfError:
+        try:
+            error = decode(data, ErrorReply, limits=self.limits)
+        except MessageError:
+            text = data.decode("utf-8", "replace")
+            if text.strip().lower() == "timeout":
+                seconds = self.timeout if timeout is None else timeout
+                return WorkerTimeoutError(f"no answer on {key} within {seconds:g} s")
+            return WorkerUnavailableError(f"Zenoh error on {key}: {text[:200]}")
+        return error_for_code(error.code, error.message)
+
+    def _nobody_answered(self, key: str, *, name: str | None, worker: str | None, timeout: float | None) -> BadfError:
+        """Why no queryable answered: the worker is gone, there is no worker, or there is no such object."""
+        if worker is not None and not self._is_alive(worker, timeout):
+            held = f" (it held object {name!r})" if name is not None else ""
+            return WorkerUnavailableError(f"worker {worker} is not running: its liveliness token is gone{held}")
+        if worker is None and not self._worker_ids(timeout):
+            return WorkerUnavailableError(f"no badf worker is reachable in namespace {self.keys.namespace!r}")
+        if name is not None:
+            return ObjectNotFoundError(
+                f"no object {name!r} in namespace {self.keys.namespace!r} (deleted, or never registered)"
+            )
+        return WorkerUnavailableError(f"nobody answered on {key}")
+
+    def _worker_ids(self, timeout: float | None) -> list[str]:
+        seconds = self.timeout if timeout is None else timeout
+        try:
+            replies = self._session.liveliness().get(self.keys.every_worker_token, timeout=seconds)
+            return [str(reply.ok.key_expr).rsplit("/", 1)[-1] for reply in replies if reply.ok is not None]
+        except zenoh.ZError:
+            return []
+
+    def _is_alive(self, worker: str, timeout: float | None) -> bool:
+        return worker in self._worker_ids(timeout)
+
+    def _publisher(self, key: str) -> zenoh.Publisher:
+        publisher = self._publishers.get(key)
+        if publisher is None:
+            publisher = self._session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+            self._publishers[key] = publisher
+        return publisher
+
+    def _drop_publisher(self, key: str) -> None:
+        publisher = self._publishers.pop(key, None)
+        if publisher is not None:
+            publisher.undeclare()
+
+
+class RemoteObject:
+    """An object on a worker. Keeps what a re-registration needs: faces, options and the last vertices sent
+    (faces and vertices are None for a handle from `Client.object`, which did not register it)."""
+
+    def __init__(
+        self, client: Client, info: ObjectInfo, *, vertices: np.ndarray | None, faces: np.ndarray | None
+    ) -> None:
+        self._client = client
+        self.name = info.name
+        self.worker = info.worker
+        self.vertex_count = info.vertex_count
+        self.face_count = info.face_count
+        self.options = info.options
+        self._frame = info.frame
+        self._vertices = vertices
+        self._faces = faces
+
+    def __repr__(self) -> str:
+        return f"RemoteObject({self.name!r}, worker={self.worker!r}, frame={self._frame})"
+
+    @property
+    def frame(self) -> int:
+        """The newest frame number this handle knows of: the last it sent, or the last a reply named."""
+        return self._frame
+
+    @property
+    def vertices(self) -> np.ndarray | None:
+        """(N, 3) float32: the last vertices this handle sent (registered, updated or streamed)."""
+        return self._vertices
+
+    @property
+    def faces(self) -> np.ndarray | None:
+        """(M, 3) int32: the topology this handle registered."""
+        return self._faces
+
+    def update(self, vertices: np.ndarray, *, timeout: float | None = None) -> int:
+        """Send (N, 3) vertices as the next frame and wait until the worker has applied it; returns its number."""
+        frame = self._next_frame(vertices)
+        ack = self._ask(self._client.keys.object_frame(self.name), frame, FrameAck, timeout)
+        self._saw(ack.frame)
+        return ack.frame
+
+    def stream(self, vertices: np.ndarray) -> int:
+        """Send (N, 3) vertices as the next frame without waiting; returns its number. The worker applies
+        the newest frame it has and drops older pending ones (see `info().frames_dropped`). Nothing is
+        raised when no worker receives it (it is gone): `update` and `info` tell."""
+        frame = self._next_frame(vertices)
+        key = self._client.keys.object_frame(self.name)
+        try:
+            self._client._publisher(key).put(encode(frame))
+        except zenoh.ZError as error:
+            raise WorkerUnavailableError(f"cannot stream to {self.name!r}: {error}") from None
+        return frame.frame
+
+    def query(
+        self,
+        points: np.ndarray,
+        *,
+        mode: QueryMode = "adf",
+        outputs: Sequence[QueryOutput] = ("distance",),
+        timeout: float | None = None,
+    ) -> QueryReply:
+        """Evaluate the field at (P, 3) points, from the ADF ("adf") or exactly ("exact").
+
+        The reply holds the outputs asked for: distance (P,) float32, signed, negative inside;
+        closest_point (P, 3); normal (P, 3); face (P,) int32; and `frame`, the frame that answered.
+        Its arrays are read-only views of the received message (copy them to change them).
+        """
+        request = QueryRequest(self.name, points, mode=mode, outputs=tuple(outputs))
+        reply = self._ask(self._client.keys.object_query(self.name), request, QueryReply, timeout)
+        self._saw(reply.frame)
+        return reply
+
+    def slice(
+        self,
+        axis: str,
+        position: float,
+        *,
+        resolution: int = 256,
+        levels: tuple[int, int] | None = None,
+        cells: bool = True,
+        corners: bool = False,
+        timeout: float | None = None,
+    ) -> SliceReply:
+        """Signed distances on the plane `axis` = `position` and the octree cells it crosses (SliceRequest)."""
+        request = SliceRequest(
+            self.name, axis, position, resolution=resolution, levels=levels, cells=cells, corners=corners
+        )  # type: ignore[arg-type]
+        reply = self._ask(self._client.keys.object_slice(self.name), request, SliceReply, timeout)
+        self._saw(reply.frame)
+        return reply
+
+    def info(self, *, timeout: float | None = None) -> ObjectInfo:
+        """The worker's report on this object: frame, counters, the engine's info and stats."""
+        info = self._ask(self._client.keys.object_info(self.name), InfoRequest(self.name), ObjectInfo, timeout)
+        self._saw(info.frame)
+        return info
+
+    def delete(self, *, timeout: float | None = None) -> int:
+        """Delete the object on its worker; returns its last applied frame."""
+        deleted = self._ask(self._client.keys.object_delete(self.name), DeleteRequest(self.name), Deleted, timeout)
+        self._client._drop_publisher(self._client.keys.object_frame(self.name))
+        return deleted.frame
+
+    def _ask(self, key: str, request: Message, expect: type[M], timeout: float | None) -> M:
+        return self._client._ask(key, request, expect, timeout=timeout, worker=self.worker, name=self.name)
+
+    def _next_frame(self, vertices: np.ndarray) -> Frame:
+        frame = Frame(self.name, self._frame + 1, vertices)
+        if len(frame.vertices) != self.vertex_count:
+            raise VertexCountMismatchError(f"{self.name} has {self.vertex_count} vertices; got {len(frame.vertices)}")
+        self._frame = frame.frame
+        self._vertices = _owned(frame.vertices, vertices)
+        return frame
+
+    def _saw(self, frame: int) -> None:
+        self._frame = max(self._frame, frame)
+
+
+def _owned(canonical: np.ndarray, given: object) -> np.ndarray:
+    """`canonical` (a message's array), copied when it is still the caller's own array, which may change."""
+    return canonical.copy() if canonical is given else canonical

@@ -1,0 +1,44 @@
+"""The one place where badf turns its options into a Zenoh configuration."""
+
+from __future__ import annotations
+
+import json
+from typing import Literal, Sequence
+
+import zenoh
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+ZenohMode = Literal["router", "peer", "client"]
+
+
+def zenoh_config(
+    *,
+    mode: ZenohMode,
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    config_file: str | None = None,
+    connect_timeout_s: float | None = None,
+) -> zenoh.Config:
+    """A Zenoh configuration for a badf worker or client.
+
+    Without `config_file`, it starts from Zenoh's defaults with multicast scouting off (only the endpoints
+    given are used) and shared memory off: Zenoh's SHM transport was seen to lose queries and replies on a
+    starved CPU (eclipse-zenoh/zenoh#2628). With `config_file` (JSON5: TLS, authentication, access
+    control), that file is the base and is left as it is. In both cases `mode` and the endpoints given here
+    override the base. `connect_timeout_s` bounds how long opening the session waits for `connect`.
+    """
+    if config_file is None:
+        config = zenoh.Config()
+        config.insert_json5("scouting/multicast/enabled", "false")
+        config.insert_json5("transport/shared_memory/enabled", "false")
+    else:
+        config = zenoh.Config.from_file(config_file)
+    config.insert_json5("mode", json.dumps(mode))
+    if listen:
+        config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if connect:
+        config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    if connect_timeout_s is not None:
+        config.insert_json5("connect/timeout_ms", json.dumps(max(1, round(connect_timeout_s * 1000))))
+    return config

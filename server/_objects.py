@@ -1,0 +1,461 @@
+"""One served object: its distance field, its Zenoh keys, and the one thread that touches the field.
+
+Zenoh callbacks only check sizes and hand work over: a streamed or blocking frame replaces the pending
+frame (the replaced one is counted as dropped), other requests join a bounded queue. The object's thread
+alternates between applying the pending frame and answering one waiting request, so queries always see a
+fully applied frame, a stream cannot starve queries, and a slow object delays only its own requests.
+Info requests are answered at once: the frame and counters are current; the engine's own info and stats
+are a snapshot the object's thread refreshes at most every 0.25 s (on a GPU, reading the engine's stage
+timers synchronises the device, which would stall other objects if it happened on every frame).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Any, Callable, Protocol
+
+import numpy as np
+import zenoh
+
+from badf.protocol import (
+    CELL_EMPTY,
+    CELL_LEAF,
+    BadfError,
+    Deleted,
+    DeleteRequest,
+    Frame,
+    FrameAck,
+    InfoRequest,
+    KeySpace,
+    Limits,
+    MetadataError,
+    NotSupportedError,
+    ObjectInfo,
+    ObjectNotFoundError,
+    ObjectOptions,
+    QueryReply,
+    QueryRequest,
+    SliceReply,
+    SliceRequest,
+    StaleFrameError,
+    VertexCountMismatchError,
+    WorkerBusyError,
+    decode,
+)
+from badf.server._replies import answer, engine_errors, refuse, request_bytes
+
+log = logging.getLogger("badf.server")
+
+# How often, at most, the object's thread refreshes the engine's info and stats for info replies.
+_SNAPSHOT_PERIOD_S = 0.25
+
+
+class DistanceFieldLike(Protocol):
+    """What the worker needs of the engine's DistanceField (badf.server.adf)."""
+
+    @property
+    def vertex_count(self) -> int: ...
+
+    @property
+    def face_count(self) -> int: ...
+
+    def update(self, vertices: np.ndarray) -> int: ...
+
+    def query(self, points: np.ndarray, *, mode: str, outputs: tuple[str, ...]) -> Any: ...
+
+    def slice(self, axis: str, position: float, *, resolution: int, max_level: int) -> Any: ...
+
+    def info(self) -> dict[str, Any]: ...
+
+    def stats(self) -> dict[str, Any]: ...
+
+
+@dataclass
+class Counters:
+    frames_applied: int = 0
+    frames_dropped: int = 0
+    frames_rejected: int = 0
+    queries_answered: int = 0
+    points_answered: int = 0
+    errors: int = 0
+
+
+@dataclass
+class _PendingFrame:
+    payload: zenoh.ZBytes | None
+    query: zenoh.Query | None  # None for a streamed frame
+
+
+@dataclass
+class _Request:
+    run: Callable[[], None]
+    fail: Callable[[BadfError], None]  # answers the request with an error instead of running it
+
+
+class ServedObject:
+    """A registered object. Create, `start` (declares its keys), and `close`, or delete it over Zenoh."""
+
+    def __init__(
+        self,
+        name: str,
+        field: DistanceFieldLike,
+        options: ObjectOptions,
+        *,
+        frame: int,
+        worker_id: str,
+        keys: KeySpace,
+        limits: Limits,
+        max_waiting_requests: int,
+        on_deleted: Callable[[ServedObject], None],
+    ) -> None:
+        self.name = name
+        self.worker_id = worker_id
+        self._field = field
+        self._vertex_count = field.vertex_count
+        self._face_count = field.face_count
+        self._options = options
+        self._frame = frame
+        self._keys = keys
+        self._limits = limits
+        self._max_waiting = max_waiting_requests
+        self._on_deleted = on_deleted
+        self._counters = Counters()
+        self._last_error: str | None = None
+        self._field_info: dict[str, Any] = {}
+        self._field_stats: dict[str, Any] = {}
+        self._snapshot_at = 0.0
+        self._snapshot_stale = False
+        self._lock = threading.Condition()
+        self._pending: _PendingFrame | None = None
+        self._waiting: deque[_Request] = deque()
+        self._closing: BadfError | None = None
+        self._entities: list[Any] = []
+        self._thread = threading.Thread(target=self._run, name=f"badf-object-{name}", daemon=True)
+        self._refresh_snapshot(force=True)
+
+    # --- life cycle ---------------------------------------------------------------------------------
+
+    def start(self, session: zenoh.Session) -> None:
+        self._thread.start()
+        frame_key = self._keys.object_frame(self.name)
+        self._entities = [
+            session.declare_subscriber(frame_key, self._on_frame_sample),
+            session.declare_queryable(frame_key, self._on_frame_query),
+            session.declare_queryable(self._keys.object_query(self.name), self._on_query),
+            session.declare_queryable(self._keys.object_slice(self.name), self._on_slice),
+            session.declare_queryable(self._keys.object_info(self.name), self._on_info),
+            session.declare_queryable(self._keys.object_delete(self.name), self._on_delete),
+        ]
+
+    def close(self, reason: BadfError) -> None:
+        """Stop taking requests, answer the waiting ones with `reason`, and end the object's thread."""
+        self._undeclare()
+        self._begin_closing(reason)
+        if threading.current_thread() is not self._thread:
+            self._thread.join()
+
+    def _undeclare(self) -> None:
+        entities, self._entities = self._entities, []
+        for entity in entities:
+            entity.undeclare()
+
+    def _begin_closing(self, reason: BadfError) -> None:
+        """From now on refuse everything with `reason`, including what waits (not what is running)."""
+        with self._lock:
+            if self._closing is None:
+                self._closing = reason
+            self._lock.notify_all()
+        self._fail_waiting()
+
+    def _fail_waiting(self) -> None:
+        with self._lock:
+            reason = self._closing
+            frame, self._pending = self._pending, None
+            waiting, self._waiting = list(self._waiting), deque()
+        if frame is not None and frame.query is not None:
+            refuse(frame.query, reason)  # type: ignore[arg-type]
+        for request in waiting:
+            request.fail(reason)  # type: ignore[arg-type]
+
+    # --- what others may read ------------------------------------------------------------------------
+
+    @property
+    def vertex_count(self) -> int:
+        return self._vertex_count
+
+    @property
+    def face_count(self) -> int:
+        return self._face_count
+
+    @property
+    def waiting_count(self) -> int:
+        """Requests queued for the object's thread."""
+        with self._lock:
+            return len(self._waiting)
+
+    def counters(self) -> Counters:
+        with self._lock:
+            return Counters(**vars(self._counters))
+
+    def info(self) -> ObjectInfo:
+        with self._lock:
+            return ObjectInfo(
+                self.name,
+                self.worker_id,
+                self._frame,
+                self._vertex_count,
+                self._face_count,
+                self._options,
+                frames_applied=self._counters.frames_applied,
+                frames_dropped=self._counters.frames_dropped,
+                frames_rejected=self._counters.frames_rejected,
+                queries_answered=self._counters.queries_answered,
+                points_answered=self._counters.points_answered,
+                last_error=self._last_error,
+                field_info=self._field_info,
+                field_stats=self._field_stats,
+            )
+
+    # --- Zenoh callbacks: cheap, never touch the field ------------------------------------------------
+
+    def _on_frame_sample(self, sample: zenoh.Sample) -> None:
+        self._offer_frame(_PendingFrame(sample.payload, None))
+
+    def _on_frame_query(self, query: zenoh.Query) -> None:
+        self._offer_frame(_PendingFrame(query.payload, query))
+
+    def _offer_frame(self, frame: _PendingFrame) -> None:
+        with self._lock:
+            closing = self._closing
+            if closing is None:
+                replaced, self._pending = self._pending, frame
+                if replaced is not None:
+                    self._counters.frames_dropped += 1
+                self._lock.notify_all()
+        if closing is not None:
+            if frame.query is not None:
+                refuse(frame.query, closing)
+            return
+        if replaced is not None and replaced.query is not None:
+            refuse(replaced.query, StaleFrameError("a newer frame arrived before this one was applied"))
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        self._enqueue_query(self._answer_query, query)
+
+    def _on_slice(self, query: zenoh.Query) -> None:
+        self._enqueue_query(self._answer_slice, query)
+
+    def _on_delete(self, query: zenoh.Query) -> None:
+        self._enqueue_query(self._answer_delete, query)
+
+    def _on_info(self, query: zenoh.Query) -> None:
+        answer(query, self._keys.object_info(self.name), lambda: self._info_for(query))
+
+    def _info_for(self, query: zenoh.Query) -> ObjectInfo:
+        request = decode(request_bytes(query.payload, self._limits), InfoRequest, limits=self._limits)
+        if request.name is not None:
+            self._check_addressed_to_me(request.name)
+        return self.info()
+
+    def _enqueue_query(self, run: Callable[[zenoh.Query], None], query: zenoh.Query) -> None:
+        self._enqueue(_Request(lambda: run(query), lambda error: refuse(query, error)))
+
+    def _enqueue(self, request: _Request) -> None:
+        """Queue `request` for the object's thread, or fail it at once when the queue is full or closed."""
+        with self._lock:
+            refusal = self._closing
+            if refusal is None and len(self._waiting) >= self._max_waiting:
+                refusal = WorkerBusyError(
+                    f"{len(self._waiting)} requests for {self.name!r} are already waiting; try again"
+                )
+            if refusal is None:
+                self._waiting.append(request)
+                self._lock.notify_all()
+                return
+        request.fail(refusal)
+
+    # --- the object's thread ---------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        while True:
+            with self._lock:
+                timeout = None
+                if self._snapshot_stale:
+                    timeout = max(0.0, self._snapshot_at + _SNAPSHOT_PERIOD_S - time.monotonic())
+                if not self._lock.wait_for(self._has_work, timeout=timeout):
+                    frame = request = None  # idle with a stale snapshot: refresh it below
+                elif self._closing is not None:
+                    break
+                else:
+                    frame, self._pending = self._pending, None
+                    request = self._waiting.popleft() if self._waiting else None
+            if frame is None and request is None:
+                try:
+                    self._refresh_snapshot(force=True)
+                except Exception:  # noqa: BLE001 - a failing report must not end the object's thread
+                    log.exception("reading the engine's info and stats for %r failed", self.name)
+            if frame is not None:
+                self._apply(frame)
+            if request is not None:
+                request.run()
+        self._fail_waiting()
+
+    def _has_work(self) -> bool:
+        return bool(self._pending or self._waiting or self._closing)
+
+    def _apply(self, pending: _PendingFrame) -> None:
+        def note(error: BadfError) -> None:
+            if isinstance(error, StaleFrameError):
+                with self._lock:
+                    self._counters.frames_dropped += 1
+            else:
+                self._note_error(error, frame=True, answered=pending.query is not None)
+
+        if pending.query is not None:
+            key = self._keys.object_frame(self.name)
+            answer(pending.query, key, lambda: self._apply_frame(pending.payload), on_error=note)
+            return
+        try:
+            self._apply_frame(pending.payload)
+        except BadfError as error:
+            note(error)
+
+    def _apply_frame(self, payload: zenoh.ZBytes | None) -> FrameAck:
+        frame = decode(request_bytes(payload, self._limits), Frame, limits=self._limits)
+        self._check_addressed_to_me(frame.name)
+        if frame.frame <= self._frame:
+            raise StaleFrameError(f"frame {frame.frame} is not newer than the applied frame {self._frame}")
+        if len(frame.vertices) != self._vertex_count:
+            raise VertexCountMismatchError(
+                f"{self.name} has {self._vertex_count} vertices; frame {frame.frame} has {len(frame.vertices)}"
+            )
+        with engine_errors():
+            self._field.update(frame.vertices)
+        with self._lock:
+            self._frame = frame.frame
+            self._counters.frames_applied += 1
+        self._refresh_snapshot()
+        return FrameAck(self.name, frame.frame)
+
+    def _answer_query(self, query: zenoh.Query) -> None:
+        key = self._keys.object_query(self.name)
+        answer(query, key, lambda: self._run_query(query.payload), on_error=self._note_answered)
+
+    def _run_query(self, payload: zenoh.ZBytes | None) -> QueryReply:
+        request = decode(request_bytes(payload, self._limits), QueryRequest, limits=self._limits)
+        self._check_addressed_to_me(request.name)
+        with engine_errors():
+            result = self._field.query(request.points, mode=request.mode, outputs=request.outputs)
+        outputs = {name: getattr(result, name) for name in request.outputs}
+        reply = QueryReply(self.name, self._frame, **outputs)
+        with self._lock:
+            self._counters.queries_answered += 1
+            self._counters.points_answered += len(request.points)
+        self._refresh_snapshot()
+        return reply
+
+    def _answer_slice(self, query: zenoh.Query) -> None:
+        key = self._keys.object_slice(self.name)
+        answer(query, key, lambda: self._run_slice(query.payload), on_error=self._note_answered)
+
+    def _run_slice(self, payload: zenoh.ZBytes | None) -> SliceReply:
+        request = decode(request_bytes(payload, self._limits), SliceRequest, limits=self._limits)
+        self._check_addressed_to_me(request.name)
+        if request.corners:
+            raise NotSupportedError("corner sample points on a slice are not served yet; ask with corners=False")
+        lowest, highest = request.levels if request.levels is not None else (0, self._options.depth)
+        with engine_errors():
+            cut = self._field.slice(
+                request.axis,
+                request.position,
+                resolution=request.resolution,
+                max_level=min(highest, self._options.depth),
+            )
+        cells: dict[str, np.ndarray] = {}
+        if request.cells:
+            keep = cut.cell_level >= lowest
+            cells = {
+                "cell_boxes": np.stack([cut.cell_lower[keep], cut.cell_upper[keep]], axis=1),
+                "cell_levels": cut.cell_level[keep],
+                "cell_flags": cut.cell_is_leaf[keep] * np.uint8(CELL_LEAF)
+                | cut.cell_is_empty[keep] * np.uint8(CELL_EMPTY),
+            }
+        extent = ((cut.u_range[0], cut.v_range[0]), (cut.u_range[1], cut.v_range[1]))
+        return SliceReply(self.name, self._frame, request.axis, request.position, extent, cut.distance, **cells)
+
+    def _answer_delete(self, query: zenoh.Query) -> None:
+        answer(query, self._keys.object_delete(self.name), lambda: self._delete(query.payload))
+
+    def _delete(self, payload: zenoh.ZBytes | None) -> Deleted:
+        request = decode(request_bytes(payload, self._limits), DeleteRequest, limits=self._limits)
+        self._check_addressed_to_me(request.name)
+        self._undeclare()
+        self._on_deleted(self)
+        self._begin_closing(ObjectNotFoundError(f"object {self.name!r} was deleted"))
+        log.info("deleted %r at frame %d", self.name, self._frame)
+        return Deleted(self.name, self._frame)
+
+    def swap(self, field: DistanceFieldLike, options: ObjectOptions, frame: int) -> ObjectInfo:
+        """Replace the field (a re-registration), on the object's thread after the requests waiting before
+        it; blocks until done. A frame still pending for the old topology is dropped."""
+        done = threading.Event()
+        failure: list[BadfError] = []
+
+        def run() -> None:
+            with self._lock:
+                self._field, self._options, self._frame = field, options, frame
+                self._vertex_count, self._face_count = field.vertex_count, field.face_count
+                self._counters = Counters()
+                self._last_error = None
+                stale, self._pending = self._pending, None
+            if stale is not None and stale.query is not None:
+                refuse(stale.query, StaleFrameError(f"{self.name} was replaced before this frame was applied"))
+            self._refresh_snapshot(force=True)
+            done.set()
+
+        def fail(error: BadfError) -> None:
+            failure.append(error)
+            done.set()
+
+        self._enqueue(_Request(run, fail))
+        done.wait()
+        if failure:
+            raise failure[0]
+        return self.info()
+
+    # --- helpers -----------------------------------------------------------------------------------
+
+    def _check_addressed_to_me(self, name: str) -> None:
+        if name != self.name:
+            raise MetadataError(f"the message names object {name!r} but was sent to {self.name!r}")
+
+    def _note_answered(self, error: BadfError) -> None:
+        self._note_error(error, answered=True)
+
+    def _note_error(self, error: BadfError, *, answered: bool, frame: bool = False) -> None:
+        """Count an error; log it when nobody was answered (a streamed frame), once per distinct message."""
+        with self._lock:
+            repeated = error.message == self._last_error
+            self._counters.errors += 1
+            if frame:
+                self._counters.frames_rejected += 1
+            self._last_error = error.message
+        if not answered and not repeated:
+            log.warning("streamed frame for %r rejected: %s", self.name, error.message)
+        else:
+            log.debug("request for %r answered with %s: %s", self.name, error.code.name, error.message)
+
+    def _refresh_snapshot(self, *, force: bool = False) -> None:
+        """Read the engine's info and stats, unless the last read is recent (then mark the snapshot stale)."""
+        now = time.monotonic()
+        if not force and now - self._snapshot_at < _SNAPSHOT_PERIOD_S:
+            self._snapshot_stale = True
+            return
+        info, stats = self._field.info(), self._field.stats()
+        with self._lock:
+            self._field_info, self._field_stats, self._snapshot_at = info, stats, now
+            self._snapshot_stale = False

@@ -1,0 +1,320 @@
+"""The worker: registration, worker info and the liveliness token over Zenoh, around its served objects.
+
+`serve(session, settings, stop=...)` runs a worker on an open session until `stop` is set. Registrations
+are built on one registrar thread (a build can take seconds), so they never run inside a Zenoh callback
+and never stall the objects already served; each object then runs on its own thread (see _objects).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import socket
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import zenoh
+
+from badf.protocol import (
+    DEFAULT_ENDPOINT,
+    DEFAULT_LIMITS,
+    BadfError,
+    InfoRequest,
+    KeySpace,
+    Limits,
+    ObjectExistsError,
+    ObjectInfo,
+    ObjectOptions,
+    RegisterRequest,
+    WorkerBusyError,
+    WorkerInfo,
+    WorkerUnavailableError,
+    ZenohMode,
+    check_name,
+    decode,
+    zenoh_config,
+)
+from badf.server._objects import Counters, DistanceFieldLike, ServedObject
+from badf.server._replies import answer, engine_errors, refuse, request_bytes
+
+log = logging.getLogger("badf.server")
+
+FieldBuilder = Callable[[np.ndarray, np.ndarray, ObjectOptions], DistanceFieldLike]
+
+
+def default_worker_id() -> str:
+    """`<host>-<pid>`, reduced to the characters a key-expression chunk allows."""
+    return re.sub(r"[^A-Za-z0-9_.\-]", "-", f"{socket.gethostname()}-{os.getpid()}")[:100]
+
+
+@dataclass(frozen=True)
+class WorkerSettings:
+    """Everything `badf serve` takes. `listen` None means tcp/127.0.0.1:7447 for a router started without a
+    config file, and nothing otherwise (the file, or Zenoh's defaults, decide)."""
+
+    worker_id: str = field(default_factory=default_worker_id)
+    namespace: str = "badf"
+    device: str | None = None
+    mode: ZenohMode = "router"
+    listen: tuple[str, ...] | None = None
+    connect: tuple[str, ...] = ()
+    config_file: str | None = None
+    limits: Limits = DEFAULT_LIMITS
+    stats_interval_s: float = 10.0
+    max_waiting_requests: int = 32
+    max_waiting_registrations: int = 8
+
+    def __post_init__(self) -> None:
+        check_name(self.worker_id, what="worker id")
+        KeySpace(self.namespace)
+        if self.stats_interval_s <= 0:
+            raise ValueError(f"stats_interval_s must be positive, got {self.stats_interval_s}")
+        if self.max_waiting_requests < 1 or self.max_waiting_registrations < 1:
+            raise ValueError("max_waiting_requests and max_waiting_registrations must be at least 1")
+
+    def zenoh_config(self) -> zenoh.Config:
+        listen = self.listen
+        if listen is None:
+            listen = (DEFAULT_ENDPOINT,) if self.mode == "router" and self.config_file is None else ()
+        return zenoh_config(mode=self.mode, listen=listen, connect=self.connect, config_file=self.config_file)
+
+
+def engine_field_builder(device: str | None) -> tuple[FieldBuilder, str]:
+    """Builds the engine's DistanceField on `device`; returns the builder and the device's resolved name.
+
+    Imports Warp and the engine here, not at module import, and keeps Warp's per-module load messages out
+    of the worker's log (warnings and errors still show). Raises ValueError for an unknown device.
+    """
+    import warp as wp
+
+    from badf.server.adf import DistanceField
+
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+
+    resolved = wp.get_device(device).alias
+
+    def build(vertices: np.ndarray, faces: np.ndarray, options: ObjectOptions) -> DistanceFieldLike:
+        return DistanceField(
+            vertices,
+            faces,
+            depth=options.depth,
+            sign=options.sign,
+            band=options.band,
+            coherence=options.coherence,
+            refine=options.refine,
+            halo=options.halo,
+            device=resolved,
+        )
+
+    return build, resolved
+
+
+class Worker:
+    """The objects of one worker and its worker-level keys. `start` declares, `close` undeclares."""
+
+    def __init__(
+        self, session: zenoh.Session, settings: WorkerSettings, build_field: FieldBuilder, device: str
+    ) -> None:
+        self.settings = settings
+        self.device = device
+        self._session = session
+        self._build_field = build_field
+        self._keys = KeySpace(settings.namespace)
+        self._objects: dict[str, ServedObject] = {}
+        self._lock = threading.Condition()
+        self._registrations: deque[zenoh.Query] = deque()
+        self._closing = False
+        self._entities: list = []
+        self._started_at = time.monotonic()
+        self._registrar = threading.Thread(target=self._register_loop, name="badf-registrar", daemon=True)
+        self._registered_total = 0
+        self._retired = Counters()  # what deleted objects had counted, so totals never go backwards
+        self._last_totals = Counters()
+        self._last_stats_at = time.monotonic()
+
+    @property
+    def worker_id(self) -> str:
+        return self.settings.worker_id
+
+    def start(self) -> None:
+        self._registrar.start()
+        self._entities = [
+            self._session.declare_queryable(self._keys.worker_register(self.worker_id), self._on_register),
+            self._session.declare_queryable(self._keys.worker_info(self.worker_id), self._on_worker_info),
+            # Declared last: a client that sees the token finds the worker ready.
+            self._session.liveliness().declare_token(self._keys.worker_token(self.worker_id)),
+        ]
+
+    def close(self) -> None:
+        """Withdraw the worker's keys, answer what waits with 'unavailable', and stop every object."""
+        for entity in reversed(self._entities):
+            entity.undeclare()
+        self._entities = []
+        shutting_down = WorkerUnavailableError(f"worker {self.worker_id} is shutting down")
+        with self._lock:
+            self._closing = True
+            waiting, self._registrations = list(self._registrations), deque()
+            self._lock.notify_all()
+        for query in waiting:
+            refuse(query, shutting_down)
+        if self._registrar.is_alive():
+            self._registrar.join()  # a build in progress finishes, and is refused below
+        with self._lock:
+            objects = list(self._objects.values())
+            self._objects.clear()
+        for served in objects:
+            served.close(shutting_down)
+
+    def objects(self) -> list[ServedObject]:
+        with self._lock:
+            return list(self._objects.values())
+
+    # --- registration ----------------------------------------------------------------------------------
+
+    def _on_register(self, query: zenoh.Query) -> None:
+        with self._lock:
+            refusal: BadfError | None = None
+            if self._closing:
+                refusal = WorkerUnavailableError(f"worker {self.worker_id} is shutting down")
+            elif len(self._registrations) >= self.settings.max_waiting_registrations:
+                refusal = WorkerBusyError(
+                    f"worker {self.worker_id} has {len(self._registrations)} registrations waiting"
+                )
+            else:
+                self._registrations.append(query)
+                self._lock.notify_all()
+        if refusal is not None:
+            refuse(query, refusal)
+
+    def _register_loop(self) -> None:
+        while True:
+            with self._lock:
+                self._lock.wait_for(lambda: self._registrations or self._closing)
+                if self._closing:
+                    return
+                query = self._registrations.popleft()
+            answer(query, self._keys.worker_register(self.worker_id), lambda: self._register(query.payload))
+
+    def _register(self, payload: zenoh.ZBytes | None) -> ObjectInfo:
+        limits = self.settings.limits
+        request = decode(request_bytes(payload, limits), RegisterRequest, limits=limits)
+        with self._lock:
+            existing = self._objects.get(request.name)
+        if existing is not None and not request.replace:
+            raise ObjectExistsError(
+                f"object {request.name!r} already exists on worker {self.worker_id}; pass replace=True to swap it"
+            )
+        started = time.perf_counter()
+        with engine_errors():
+            built = self._build_field(request.vertices, request.faces, request.options)
+        build_ms = (time.perf_counter() - started) * 1000
+        if existing is not None:
+            info = existing.swap(built, request.options, request.frame)
+        else:
+            served = ServedObject(
+                request.name,
+                built,
+                request.options,
+                frame=request.frame,
+                worker_id=self.worker_id,
+                keys=self._keys,
+                limits=limits,
+                max_waiting_requests=self.settings.max_waiting_requests,
+                on_deleted=self._forget,
+            )
+            with self._lock:
+                if self._closing:
+                    raise WorkerUnavailableError(f"worker {self.worker_id} is shutting down")
+                self._objects[request.name] = served
+            served.start(self._session)
+            info = served.info()
+        with self._lock:
+            self._registered_total += 1
+        resolved_sign = info.field_info.get("sign", request.options.sign)
+        log.info(
+            "%s %r: %d vertices, %d faces, depth %d, sign %s, frame %d, built in %.1f ms on %s",
+            "replaced" if existing is not None else "registered",
+            request.name, info.vertex_count, info.face_count, request.options.depth, resolved_sign,
+            request.frame, build_ms, self.device,
+        )  # fmt: skip
+        return info
+
+    def _forget(self, served: ServedObject) -> None:
+        counters = served.counters()
+        with self._lock:
+            if self._objects.get(served.name) is served:
+                del self._objects[served.name]
+            for name, value in vars(counters).items():
+                setattr(self._retired, name, getattr(self._retired, name) + value)
+
+    # --- worker info and stats ----------------------------------------------------------------------
+
+    def _on_worker_info(self, query: zenoh.Query) -> None:
+        answer(query, self._keys.worker_info(self.worker_id), lambda: self._worker_info(query.payload))
+
+    def _worker_info(self, payload: zenoh.ZBytes | None) -> WorkerInfo:
+        decode(request_bytes(payload, self.settings.limits), InfoRequest, limits=self.settings.limits)
+        objects = self.objects()
+        return WorkerInfo(
+            self.worker_id,
+            self.device,
+            len(objects),
+            sum(served.vertex_count for served in objects),
+            sum(served.face_count for served in objects),
+            time.monotonic() - self._started_at,
+            self.settings.limits.to_json(),
+        )
+
+    def totals(self) -> Counters:
+        """Counters summed over every object this worker has served."""
+        totals = Counters(**vars(self._retired))
+        for served in self.objects():
+            for name, value in vars(served.counters()).items():
+                setattr(totals, name, getattr(totals, name) + value)
+        return totals
+
+    def stats_line(self) -> str:
+        """One line of what happened since the previous call."""
+        now, totals = time.monotonic(), self.totals()
+        delta = {name: value - getattr(self._last_totals, name) for name, value in vars(totals).items()}
+        seconds = now - self._last_stats_at
+        self._last_totals, self._last_stats_at = totals, now
+        return (
+            f"stats: {len(self.objects())} objects; last {seconds:.1f} s: frames {delta['frames_applied']} applied, "
+            f"{delta['frames_dropped']} dropped, {delta['frames_rejected']} rejected; "
+            f"queries {delta['queries_answered']} ({delta['points_answered']} points); errors {delta['errors']}"
+        )
+
+
+def serve(
+    session: zenoh.Session,
+    settings: WorkerSettings,
+    *,
+    stop: threading.Event,
+    build_field: FieldBuilder | None = None,
+    device: str | None = None,
+    on_ready: Callable[[Worker], None] | None = None,
+) -> None:
+    """Serve badf objects on `session` until `stop` is set, logging a stats line every stats interval.
+
+    `build_field` defaults to the engine's DistanceField on `settings.device`; tests of the plumbing may
+    pass another builder (and a `device` name for the worker info).
+    """
+    if build_field is None:
+        build_field, device = engine_field_builder(settings.device)
+    worker = Worker(session, settings, build_field, device or settings.device or "default")
+    worker.start()
+    try:
+        log.info("worker %s serving namespace %r on %s", worker.worker_id, settings.namespace, worker.device)
+        if on_ready is not None:
+            on_ready(worker)
+        while not stop.wait(settings.stats_interval_s):
+            log.info(worker.stats_line())
+    finally:
+        worker.close()
+        log.info("worker %s stopped", worker.worker_id)

@@ -1,0 +1,348 @@
+"""The service end to end: real worker processes (spawned, on free ports of 127.0.0.1), the real engine on
+the CPU back-end, and the client. Results through the service must equal the engine's in-process results."""
+
+from __future__ import annotations
+
+import os
+import signal
+import struct
+import threading
+
+import meshes
+import numpy as np
+import pytest
+import zenoh
+from conftest import free_endpoint, wait_until
+from service_processes import SPAWN, stream_until_killed, worker_on
+from tolerances import EXACT_DISTANCE
+
+from badf.client import Client, RemoteObject
+from badf.protocol import (
+    CELL_EMPTY,
+    CELL_LEAF,
+    QUERY_MODES,
+    QUERY_OUTPUTS,
+    SIGN_METHODS,
+    BadfError,
+    DtypeError,
+    ErrorReply,
+    Frame,
+    IndexRangeError,
+    InvalidOptionError,
+    KeySpace,
+    LimitExceededError,
+    ObjectOptions,
+    NonFiniteError,
+    QueryRequest,
+    RegisterRequest,
+    RejectedInputError,
+    VertexCountMismatchError,
+    WorkerTimeoutError,
+    WorkerUnavailableError,
+    decode,
+    encode,
+    error_for_code,
+    zenoh_config,
+)
+from badf.server import adf, end_process
+from badf.server.adf import DistanceField
+
+ALL_OUTPUTS = ("distance", "closest_point", "normal", "face")
+KEYS = KeySpace()
+rng = np.random.default_rng(11)
+
+
+def sample_points(vertices: np.ndarray, count: int = 1500) -> np.ndarray:
+    """Points in and around the mesh's bounding box (a quarter of it beyond each side)."""
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    margin = 0.25 * (hi - lo)
+    return rng.uniform(lo - margin, hi + margin, size=(count, 3)).astype(np.float32)
+
+
+def assert_same_answers(remote: RemoteObject, local: DistanceField, points: np.ndarray) -> None:
+    """Both modes, every output: the service returns exactly what the engine computes in-process."""
+    for mode in QUERY_MODES:
+        served = remote.query(points, mode=mode, outputs=ALL_OUTPUTS)
+        direct = local.query(points, mode=mode, outputs=ALL_OUTPUTS)
+        assert served.frame == remote.frame
+        for name in ALL_OUTPUTS:
+            np.testing.assert_array_equal(getattr(served, name), getattr(direct, name), err_msg=f"{mode} {name}")
+
+
+@pytest.fixture(scope="module")
+def shared_endpoint() -> str:
+    return free_endpoint()
+
+
+@pytest.fixture(scope="module")
+def shared_worker(shared_endpoint: str):
+    with worker_on(shared_endpoint, worker_id="shared") as process:
+        yield process
+
+
+@pytest.fixture
+def client(shared_worker, shared_endpoint: str):
+    with Client(shared_endpoint, timeout=60) as connected:
+        yield connected
+        for info in connected.objects():
+            connected.object(info.name).delete()
+
+
+def test_protocol_choices_match_the_engine() -> None:
+    assert set(SIGN_METHODS) == set(adf.SIGN_METHODS)
+    assert set(QUERY_MODES) == set(adf.QUERY_MODES)
+    assert set(QUERY_OUTPUTS) == set(adf.QUERY_OUTPUTS)
+
+
+@pytest.mark.parametrize(
+    ("mesh", "options"),
+    [
+        ("spot", {}),
+        ("fandisk", {"depth": 6, "sign": "winding", "band": 0.05}),
+        ("homer", {"depth": 5, "sign": "none", "coherence": False, "refine": "centroid", "halo": 0}),
+        ("sheet", {"depth": 6, "sign": "auto"}),
+    ],
+)
+def test_registered_meshes_answer_like_the_engine(client: Client, mesh: str, options: dict) -> None:
+    vertices, faces = meshes.load(mesh)
+    remote = client.register(mesh, vertices, faces, **options)
+    local = DistanceField(vertices, faces, device="cpu", **options)
+    info = remote.info()
+    assert info.field_info["sign"] == local.info()["sign"]
+    assert (info.vertex_count, info.face_count) == (local.vertex_count, local.face_count)
+    assert_same_answers(remote, local, sample_points(vertices))
+
+
+def test_slices_answer_like_the_engine(client: Client) -> None:
+    vertices, faces = meshes.load("spot")
+    remote = client.register("cow", vertices, faces, depth=5)
+    local = DistanceField(vertices, faces, depth=5, device="cpu")
+    bent = vertices * 1.02
+    remote.update(bent)
+    local.update(bent)
+    position = float(bent[:, 2].mean())
+    served = remote.slice("z", position, resolution=40, levels=(2, 4))
+    direct = local.slice("z", position, resolution=40, max_level=4)
+    assert served.frame == 1 and served.grid.shape == (40, 40)
+    np.testing.assert_array_equal(served.grid, direct.distance)
+    assert served.extent == ((direct.u_range[0], direct.v_range[0]), (direct.u_range[1], direct.v_range[1]))
+    keep = direct.cell_level >= 2
+    np.testing.assert_array_equal(served.cell_levels, direct.cell_level[keep])
+    np.testing.assert_array_equal(served.cell_boxes[:, 0], direct.cell_lower[keep])
+    np.testing.assert_array_equal(served.cell_boxes[:, 1], direct.cell_upper[keep])
+    np.testing.assert_array_equal((served.cell_flags & CELL_LEAF) > 0, direct.cell_is_leaf[keep])
+    np.testing.assert_array_equal((served.cell_flags & CELL_EMPTY) > 0, direct.cell_is_empty[keep])
+    with pytest.raises(LimitExceededError):
+        remote.slice("z", position, resolution=2048 + 1)
+
+
+def test_several_objects_live_side_by_side(client: Client) -> None:
+    names = []
+    for mesh in ("spot", "homer", "rocker-arm"):
+        vertices, faces = meshes.load(mesh)
+        client.register(mesh, vertices, faces, depth=5)
+        names.append(mesh)
+    assert [info.name for info in client.objects()] == sorted(names)
+    assert client.workers()[0].object_count == 3
+    vertices, faces = meshes.load("spot")
+    assert_same_answers(
+        client.object("spot"), DistanceField(vertices, faces, depth=5, device="cpu"), sample_points(vertices)
+    )
+
+
+def test_streamed_sequence_answers_like_the_engine(client: Client) -> None:
+    frames, faces = meshes.load_sequence("vlasic_samba")
+    points = sample_points(frames[0], 1000)
+    remote = client.register("dancer", frames[0], faces, depth=6)
+    local = DistanceField(frames[0], faces, depth=6, device="cpu")
+    for index in range(6, 31, 6):  # blocking updates: the worker's history is the local one
+        assert remote.update(frames[index]) == remote.frame
+        local.update(frames[index])
+        assert_same_answers(remote, local, points)
+    sent = [remote.stream(frames[index]) for index in range(31, len(frames))]
+    wait_until(lambda: remote.info().frame == sent[-1], timeout=120, what="the last streamed frame")
+    info = remote.info()
+    assert info.frames_applied + info.frames_dropped == 5 + len(sent)
+    assert info.frames_rejected == 0
+    # Which streamed frames were dropped is up to timing, so the history differs: compare exact distances.
+    last = DistanceField(frames[-1], faces, depth=6, device="cpu")
+    served = remote.query(points, mode="exact", outputs=("distance",))
+    assert served.frame == sent[-1]
+    diagonal = float(np.linalg.norm(frames[-1].max(axis=0) - frames[-1].min(axis=0)))
+    np.testing.assert_allclose(
+        served.distance, last.query(points, mode="exact").distance, rtol=0, atol=EXACT_DISTANCE * diagonal
+    )
+
+
+def test_two_clients_with_two_objects_at_once(shared_worker, shared_endpoint: str) -> None:
+    failures: list[BaseException] = []
+
+    def drive(mesh: str) -> None:
+        try:
+            vertices, faces = meshes.load(mesh)
+            points = sample_points(vertices, 500)
+            with Client(shared_endpoint, timeout=60) as own:
+                remote = own.register(f"{mesh}-pair", vertices, faces, depth=5)
+                local = DistanceField(vertices, faces, depth=5, device="cpu")
+                for step in range(1, 6):
+                    bent = vertices * (1.0 + 0.01 * step)
+                    assert remote.update(bent) == step
+                    local.update(bent)
+                    assert_same_answers(remote, local, points)
+                remote.delete()
+        except BaseException as error:  # noqa: BLE001 - reported by the test thread below
+            failures.append(error)
+
+    threads = [threading.Thread(target=drive, args=(mesh,)) for mesh in ("spot", "homer")]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=300)
+    assert not any(thread.is_alive() for thread in threads), "a client thread did not finish"
+    if failures:
+        raise failures[0]
+
+
+def test_bad_input_is_answered_and_changes_nothing(client: Client, shared_endpoint: str) -> None:
+    vertices, faces = meshes.load("spot")
+    remote = client.register("cow", vertices, faces, depth=5)
+    remote.update(vertices * 1.01)
+    points = sample_points(vertices, 300)
+    before = remote.query(points, outputs=ALL_OUTPUTS)
+    query_key, frame_key, register_key = (
+        KEYS.object_query("cow"),
+        KEYS.object_frame("cow"),
+        KEYS.worker_register("shared"),
+    )
+    nan_frame = bytearray(encode(Frame("cow", 9, vertices)))
+    struct.pack_into("<f", nan_frame, len(nan_frame) - 4, float("inf"))
+    int_vertices = bytearray(encode(Frame("cow", 9, vertices)))
+    struct.pack_into("<B", int_vertices, 20, 3)  # the vertex array's dtype code: float32 -> int32
+    bad_faces = bytearray(encode(RegisterRequest("cow2", vertices, faces)))
+    struct.pack_into("<i", bad_faces, len(bad_faces) - 4, len(vertices) + 5)
+    cases = [
+        (frame_key, nan_frame, NonFiniteError),
+        (frame_key, int_vertices, DtypeError),
+        (frame_key, encode(Frame("cow", 9, vertices[:-1])), VertexCountMismatchError),
+        (register_key, bad_faces, IndexRangeError),
+        (
+            register_key,
+            encode(RegisterRequest("cow3", vertices, faces, options=ObjectOptions(depth=11))),
+            RejectedInputError,
+        ),
+        (query_key, encode(QueryRequest("cow", np.zeros((5_000_000, 3), np.float32))), LimitExceededError),
+    ]
+    with zenoh.open(zenoh_config(mode="client", connect=[shared_endpoint])) as raw:
+        for key, payload, expected in cases:
+            [reply] = list(raw.get(key, payload=payload, timeout=60))
+            assert reply.err is not None, f"{key}: expected {expected.__name__}, got a reply"
+            answer = decode(reply.err.payload.to_bytes(), ErrorReply)
+            error = error_for_code(answer.code, answer.message)
+            assert isinstance(error, expected), (
+                f"{key}: expected {expected.__name__}, got {type(error).__name__}: {error}"
+            )
+    with pytest.raises(InvalidOptionError):
+        client.register("cow4", vertices, faces, sign="inside-out")
+    with pytest.raises(VertexCountMismatchError):
+        remote.update(vertices[:-1])
+    info = remote.info()
+    assert (info.frame, info.frames_applied, info.frames_rejected) == (1, 1, 3)
+    after = remote.query(points, outputs=ALL_OUTPUTS)
+    assert after.frame == before.frame == 1
+    for name in ALL_OUTPUTS:
+        np.testing.assert_array_equal(getattr(after, name), getattr(before, name))
+    assert [o.name for o in client.objects()] == ["cow"]
+
+
+def test_a_killed_worker_is_a_clear_error(endpoint: str) -> None:
+    vertices, faces = meshes.load("spot")
+    with worker_on(endpoint, worker_id="doomed") as process, Client(endpoint, timeout=5) as client:
+        remote = client.register("cow", vertices, faces, depth=5)
+        asking = threading.Event()
+        outcome: list[BaseException] = []
+
+        def big_query() -> None:  # still running on the worker when it dies
+            try:
+                asking.set()
+                remote.query(sample_points(vertices, 2_000_000), mode="exact", timeout=20)
+            except BadfError as error:
+                outcome.append(error)
+
+        asker = threading.Thread(target=big_query)
+        asker.start()
+        assert asking.wait(30)
+        process.kill()  # SIGKILL: no goodbye
+        process.join(30)
+        asker.join(timeout=90)
+        assert not asker.is_alive(), "a query in flight hung after the worker died"
+        assert len(outcome) == 1 and isinstance(outcome[0], (WorkerUnavailableError, WorkerTimeoutError)), outcome
+        with pytest.raises(WorkerUnavailableError):
+            remote.query(sample_points(vertices, 10), timeout=5)
+        with pytest.raises(WorkerUnavailableError):
+            remote.update(vertices)
+        with pytest.raises(WorkerUnavailableError):
+            client.register("again", vertices, faces)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_worker_shuts_down_cleanly_on_signals(endpoint: str, signum: int) -> None:
+    vertices, faces = meshes.load("spot")
+    with worker_on(endpoint, worker_id="polite") as process, Client(endpoint, timeout=5) as client:
+        remote = client.register("cow", vertices, faces, depth=5)
+        os.kill(process.pid, signum)  # the worker this test started
+        process.join(60)
+        assert process.exitcode == 0
+        with pytest.raises(WorkerUnavailableError):
+            remote.info(timeout=5)
+
+
+def test_a_client_killed_mid_stream_leaves_the_worker_serving(endpoint: str) -> None:
+    cow, cow_faces = meshes.load("spot")
+    with worker_on(endpoint, worker_id="sturdy"), Client(endpoint, timeout=60) as client:
+        remote = client.register("cow", cow, cow_faces, depth=5)
+        local = DistanceField(cow, cow_faces, depth=5, device="cpu")
+        streamed = SPAWN.Event()
+        streamer = SPAWN.Process(
+            target=stream_until_killed,
+            args=(endpoint, "dancer", str(meshes.data_file("vlasic_samba")), streamed),
+            daemon=True,
+        )
+        streamer.start()
+        try:
+            assert streamed.wait(300), "the streaming client did not get going"
+            streamer.kill()
+            streamer.join(30)
+        finally:
+            end_process(streamer)
+        points = sample_points(cow, 400)
+        for step in range(1, 4):
+            bent = cow * (1.0 + 0.02 * step)
+            assert remote.update(bent) == step
+            local.update(bent)
+            assert_same_answers(remote, local, points)
+        dancer = client.object("dancer")
+        wait_until(lambda: _settled(dancer), timeout=60, what="the dead client's last frame to be applied")
+        info = dancer.info()
+        assert info.frame >= 1 and info.frames_rejected == 0  # frames in flight at the kill may be lost
+        assert dancer.query(points, outputs=("distance",)).frame == info.frame
+        assert [o.name for o in client.objects()] == ["cow", "dancer"]
+        client.register("newcomer", cow, cow_faces, depth=4)
+
+
+def _settled(remote: RemoteObject) -> bool:
+    first = remote.info()
+    return first.frame == remote.info().frame and first.frames_applied + first.frames_dropped == first.frame
+
+
+def test_a_taken_port_is_a_clear_error() -> None:
+    import socket
+
+    from badf.server import WorkerSettings, worker_process
+
+    with socket.socket() as squatter:
+        squatter.bind(("127.0.0.1", 0))
+        squatter.listen()
+        taken = f"tcp/127.0.0.1:{squatter.getsockname()[1]}"
+        with pytest.raises(WorkerUnavailableError, match="exited with status 1"):
+            with worker_process(WorkerSettings(worker_id="late", listen=(taken,), device="cpu")):
+                pass
