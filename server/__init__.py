@@ -5,7 +5,16 @@ Importing this package does not import Warp; the engine (`badf.server.adf`) is l
 """
 
 from badf.server._router import RouterSettings
-from badf.server._run import end_process, router_process, run_gpu_workers, run_router, run_worker, worker_process
+from badf.server._run import (
+    end_process,
+    router_process,
+    run_gpu_workers,
+    run_router,
+    run_worker,
+    run_workers,
+    worker_process,
+    workers_process,
+)
 from badf.server._worker import Worker, WorkerSettings, serve
 
 __all__ = [
@@ -17,6 +26,8 @@ __all__ = [
     "run_gpu_workers",
     "run_router",
     "run_worker",
+    "run_workers",
     "serve",
     "worker_process",
+    "workers_process",
 ]

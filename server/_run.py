@@ -1,6 +1,7 @@
-"""Processes: a worker (`run_worker`), a router alone (`run_router`), and a router with one worker process
-per GPU (`run_gpu_workers`), each with logging and SIGINT/SIGTERM handling, running until a signal comes;
-and `worker_process` / `router_process`, which run one as a child process (tests, benchmarks, the demo)."""
+"""Processes: a worker (`run_worker`), a router alone (`run_router`), and a router with worker processes
+behind it (`run_workers`; `run_gpu_workers` for one per GPU), each with logging and SIGINT/SIGTERM
+handling, running until a signal comes; and `worker_process`, `router_process` and `workers_process`,
+which run one as a child process (tests, benchmarks, the demo)."""
 
 from __future__ import annotations
 
@@ -83,76 +84,86 @@ def run_router(settings: RouterSettings, ready: _Settable | None = None) -> int:
     return 0
 
 
-def run_gpu_workers(settings: WorkerSettings, gpus: Sequence[int], *, start_timeout_s: float = 900.0) -> int:
-    """A router in this process and, for each GPU index N, a worker process on cuda:N connected to it.
+def run_gpu_workers(settings: WorkerSettings, gpus: Sequence[int]) -> int:
+    """`badf serve --gpus`: `run_workers` with one worker per GPU index N, on cuda:N, with the id
+    `{settings.worker_id}-cudaN`; the router listens where `settings` says and joins `settings.connect`."""
+    router = RouterSettings(settings.namespace, settings.listen, settings.connect, settings.config_file)
+    workers = [
+        dataclasses.replace(settings, worker_id=f"{settings.worker_id}-cuda{index}", device=f"cuda:{index}")
+        for index in gpus
+    ]
+    return run_workers(router, workers)
 
-    The router listens where `settings` says (see RouterSettings) and joins `settings.connect`; the workers
-    reach it on a private loopback port and listen nowhere themselves. Worker N's id is
-    `{settings.worker_id}-cuda{N}`. Runs until SIGINT or SIGTERM, then stops the workers and the router
-    (status 0). A worker that fails to start stops everything with its status (1: Zenoh, 2: engine or
-    device); one that exits later is logged and the others keep serving, until none is left (status 1).
+
+def run_workers(
+    router: RouterSettings,
+    workers: Sequence[WorkerSettings],
+    ready: _Settable | None = None,
+    *,
+    start_timeout_s: float = 900.0,
+) -> int:
+    """A router in this process and one spawned process per worker, until SIGINT or SIGTERM.
+
+    The workers join the router on a private loopback port and listen nowhere themselves (their own
+    `mode`, `listen` and `connect` are replaced). `ready` is set once every worker is. On a signal the
+    workers and the router stop (status 0). A worker that fails to start stops everything with its status
+    (1: Zenoh, 2: engine or device); one that exits later is logged and the others keep serving, until
+    none is left (status 1).
     """
     _configure_logging()
     stop = _stop_on_signals()
     loopback = free_loopback_endpoint()
-    router = RouterSettings(settings.namespace, settings.listen, settings.connect, settings.config_file)
     config = router.zenoh_config(extra_listen=(loopback,))
     session = _open(config)
     if session is None:
         return 1
-    workers = {
-        f"cuda:{index}": dataclasses.replace(
-            settings,
-            worker_id=f"{settings.worker_id}-cuda{index}",
-            device=f"cuda:{index}",
-            mode="router",
-            listen=(),
-            connect=(loopback,),
-        )
-        for index in gpus
-    }
+    joined = [dataclasses.replace(w, mode="router", listen=(), connect=(loopback,)) for w in workers]
     with session:
-        watcher = log_worker_changes(session, settings.namespace)
+        watcher = log_worker_changes(session, router.namespace)
         log.info("router listening on %s", ", ".join(listen_endpoints(config)))
-        status = _supervise(workers, stop, start_timeout_s)
+        status = _supervise(joined, stop, ready, start_timeout_s)
         watcher.undeclare()
     log.info("router stopped")
     return status
 
 
-def _supervise(workers: dict[str, WorkerSettings], stop: threading.Event, start_timeout_s: float) -> int:
+def _supervise(
+    workers: Sequence[WorkerSettings], stop: threading.Event, ready: _Settable | None, start_timeout_s: float
+) -> int:
     """Start a process per worker, wait until all are ready, then until `stop` or until none is left."""
-    children = {device: _spawn(_worker_main, settings, name=f"badf-worker-{settings.worker_id}")
-                for device, settings in workers.items()}  # fmt: skip
+    children = [_spawn(_worker_main, settings, name=f"badf-worker-{settings.worker_id}") for settings in workers]
     try:
         deadline = time.monotonic() + start_timeout_s
-        starting = dict(children)
+        starting = set(range(len(workers)))
         while starting and not stop.is_set():
-            for device, (process, ready) in list(starting.items()):
-                if ready.is_set():
-                    log.info("worker %s ready on %s (pid %d)", workers[device].worker_id, device, process.pid)
-                    del starting[device]
+            for index in sorted(starting):
+                (process, started), worker = children[index], workers[index]
+                if started.is_set():
+                    log.info("worker %s ready on %s (pid %d)", worker.worker_id, worker.device, process.pid)
+                    starting.discard(index)
                 elif not process.is_alive():
-                    log.error("worker on %s exited with status %s before it was ready", device, process.exitcode)
+                    log.error("worker %s exited with status %s before it was ready", worker.worker_id, process.exitcode)
                     return process.exitcode if process.exitcode and process.exitcode > 0 else 1
             if time.monotonic() > deadline:
-                log.error("workers on %s not ready after %g s", ", ".join(starting), start_timeout_s)
+                log.error("%d workers not ready after %g s", len(starting), start_timeout_s)
                 return 1
             stop.wait(0.1)
-        running = {process.sentinel: device for device, (process, _) in children.items()}
+        if ready is not None and not stop.is_set():
+            ready.set()
+        running = {process.sentinel: index for index, (process, _) in enumerate(children)}
         while running and not stop.is_set():
             for sentinel in multiprocessing.connection.wait(list(running), timeout=0.2):
-                device = running.pop(sentinel)  # type: ignore[call-overload]
+                index = running.pop(sentinel)  # type: ignore[call-overload]
                 log.error(
-                    "worker %s on %s exited with status %s; the other workers keep serving",
-                    workers[device].worker_id, device, children[device][0].exitcode,
+                    "worker %s exited with status %s; the other workers keep serving",
+                    workers[index].worker_id, children[index][0].exitcode,
                 )  # fmt: skip
         return 0 if stop.is_set() else 1
     finally:
-        for process, _ in children.values():
+        for process, _ in children:
             if process.is_alive():
                 process.terminate()  # all at once, so they shut down side by side
-        for process, _ in children.values():
+        for process, _ in children:
             end_process(process)
 
 
@@ -176,10 +187,21 @@ def router_process(settings: RouterSettings, *, start_timeout_s: float = 60.0) -
 
 
 @contextmanager
-def _child(
-    main: Callable[[Any, _Settable], None], settings: Any, name: str, start_timeout_s: float
+def workers_process(
+    router: RouterSettings, workers: Sequence[WorkerSettings], *, start_timeout_s: float = 600.0
 ) -> Iterator[multiprocessing.Process]:
-    process, ready = _spawn(main, settings, name=name)
+    """Run `run_workers(router, workers)` in a child process for the duration of the block (as
+    `worker_process`): ready once the router and every worker are."""
+    # Not a daemon: a daemonic process may not start the worker processes.
+    with _child(_workers_main, (router, list(workers)), "badf-workers", start_timeout_s, daemon=False) as process:
+        yield process
+
+
+@contextmanager
+def _child(
+    main: Callable[[Any, _Settable], None], settings: Any, name: str, start_timeout_s: float, *, daemon: bool = True
+) -> Iterator[multiprocessing.Process]:
+    process, ready = _spawn(main, settings, name=name, daemon=daemon)
     try:
         deadline = time.monotonic() + start_timeout_s
         while not ready.wait(0.1):
@@ -192,9 +214,11 @@ def _child(
         end_process(process)
 
 
-def _spawn(main: Callable[[Any, _Settable], None], settings: Any, *, name: str) -> tuple[multiprocessing.Process, Any]:
+def _spawn(
+    main: Callable[[Any, _Settable], None], settings: Any, *, name: str, daemon: bool = True
+) -> tuple[multiprocessing.Process, Any]:
     ready = _SPAWN.Event()
-    process = _SPAWN.Process(target=main, args=(settings, ready), name=name, daemon=True)
+    process = _SPAWN.Process(target=main, args=(settings, ready), name=name, daemon=daemon)
     process.start()
     return process, ready
 
@@ -205,6 +229,11 @@ def _worker_main(settings: WorkerSettings, ready: _Settable) -> None:
 
 def _router_main(settings: RouterSettings, ready: _Settable) -> None:
     sys.exit(run_router(settings, ready))
+
+
+def _workers_main(settings: tuple[RouterSettings, list[WorkerSettings]], ready: _Settable) -> None:
+    router, workers = settings
+    sys.exit(run_workers(router, workers, ready))
 
 
 def end_process(process: multiprocessing.Process, *, grace_s: float = 30.0) -> None:
