@@ -263,6 +263,9 @@ class Worker:
     def _worker_info(self, payload: zenoh.ZBytes | None) -> WorkerInfo:
         decode(request_bytes(payload, self.settings.limits), InfoRequest, limits=self.settings.limits)
         objects = self.objects()
+        totals = self.totals()
+        with self._lock:
+            registrations_waiting = len(self._registrations)
         return WorkerInfo(
             self.worker_id,
             self.device,
@@ -271,6 +274,10 @@ class Worker:
             sum(served.face_count for served in objects),
             time.monotonic() - self._started_at,
             self.settings.limits.to_json(),
+            requests_waiting=registrations_waiting + sum(served.waiting_count for served in objects),
+            frames_applied=totals.frames_applied,
+            queries_answered=totals.queries_answered,
+            points_answered=totals.points_answered,
         )
 
     def totals(self) -> Counters:

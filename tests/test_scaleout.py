@@ -3,10 +3,32 @@
 from __future__ import annotations
 
 import argparse
+import threading
+import time
 
+import numpy as np
 import pytest
+import zenoh
+from conftest import wait_until
+from test_worker_plumbing import FACES, POINTS, VERTICES, ThreadWorker, expected_distance
 
+from badf.client import Client
+from badf.protocol import (
+    InfoRequest,
+    KeySpace,
+    NotSupportedError,
+    ObjectExistsError,
+    ObjectInfo,
+    ObjectOptions,
+    ObjectUnavailableError,
+    WorkerUnavailableError,
+    decode,
+    encode,
+    zenoh_config,
+)
 from badf.server import RouterSettings, _cli, _cuda
+
+KEYS = KeySpace()
 
 
 def serve_args(*flags: str) -> argparse.Namespace:
@@ -68,3 +90,97 @@ def test_this_machine_reports_its_cuda_devices_or_why_not() -> None:
         assert str(error).startswith("no CUDA device is")
     else:
         assert count >= 1
+
+
+# --- the client across workers (stand-in fields, workers in threads of this process) ---------------------
+
+
+def test_workers_report_their_load(endpoint: str) -> None:
+    with ThreadWorker(endpoint), Client(endpoint, timeout=10) as client:
+        obj = client.register("blob", VERTICES, FACES)
+        obj.update(VERTICES + 1)
+        obj.query(POINTS)
+        [info] = client.workers()
+        assert (info.object_count, info.vertex_count, info.face_count) == (1, len(VERTICES), len(FACES))
+        assert (info.frames_applied, info.queries_answered, info.points_answered) == (1, 1, len(POINTS))
+        assert info.requests_waiting == 0
+
+
+def test_a_worker_that_leaves_makes_its_objects_unavailable_and_reregister_restores_them(endpoint: str) -> None:
+    with ThreadWorker(endpoint, worker_id="w1"), Client(endpoint, timeout=10) as client:
+        with ThreadWorker("", worker_id="w2", connect=(endpoint,)):
+            wait_until(lambda: len(client.workers()) == 2, what="both workers")
+            kept = client.register("kept", VERTICES, FACES)
+            moved = client.register("moved", VERTICES[:30], FACES[:2])  # placed on the emptier worker
+            assert (kept.worker, moved.worker) == ("w1", "w2")
+            last = VERTICES[:30] + 2
+            moved.update(VERTICES[:30] + 1)
+            moved.update(last)
+            assert moved.available
+        wait_until(lambda: not moved.available, what="the client to see w2 go")
+        for call in (lambda: moved.query(POINTS), lambda: moved.update(last), lambda: moved.stream(last), moved.info):
+            with pytest.raises(ObjectUnavailableError, match="worker w2 is gone"):
+                call()
+        assert kept.available and kept.query(POINTS).frame == 0
+        assert [o.name for o in client.objects()] == ["kept"]
+        with pytest.raises(WorkerUnavailableError):
+            moved.reregister(worker="w2")
+        info = moved.reregister()
+        assert (info.worker, moved.worker, info.options) == ("w1", "w1", moved.options)
+        assert info.frame == moved.frame == 4  # two updates, and the update and stream refused above
+        answer = moved.query(POINTS)
+        np.testing.assert_allclose(answer.distance, expected_distance(POINTS, last), rtol=1e-6)
+        assert moved.update(last + 1) == 5
+        assert [o.name for o in client.objects()] == ["kept", "moved"]
+        with pytest.raises(ObjectExistsError):
+            moved.reregister()
+        with pytest.raises(NotSupportedError):
+            client.object("kept").reregister()
+
+
+def test_a_request_in_flight_ends_when_its_worker_goes(endpoint: str) -> None:
+    """A worker whose liveliness token goes while its queryable still holds a query: the client ends the
+    request on the token's DELETE instead of waiting for the timeout."""
+    options = ObjectOptions()
+    held: list[zenoh.Query] = []
+    received = threading.Event()
+
+    def on_info(query: zenoh.Query) -> None:
+        decode(query.payload.to_bytes(), InfoRequest)
+        query.reply(KEYS.object_info("ghost"), encode(ObjectInfo("ghost", "ghost-worker", 0, 40, 3, options)))
+        query.drop()
+
+    def on_query(query: zenoh.Query) -> None:
+        held.append(query)  # never answered
+        received.set()
+
+    timeout_s = 30.0
+    with ThreadWorker(endpoint), zenoh.open(zenoh_config(mode="client", connect=[endpoint])) as ghost:
+        ghost.declare_queryable(KEYS.object_info("ghost"), on_info)
+        ghost.declare_queryable(KEYS.object_query("ghost"), on_query)
+        token = ghost.liveliness().declare_token(KEYS.worker_token("ghost-worker"))
+        with Client(endpoint, timeout=timeout_s) as client:
+            handle = client.object("ghost")
+            outcome: list[BaseException] = []
+            ended = threading.Event()
+
+            def ask() -> None:
+                try:
+                    handle.query(POINTS)
+                except BaseException as error:  # noqa: BLE001 - checked below
+                    outcome.append(error)
+                ended.set()
+
+            asker = threading.Thread(target=ask)
+            asker.start()
+            assert received.wait(timeout_s), "the query did not reach the ghost worker"
+            token.undeclare()
+            gone_at = time.monotonic()
+            assert ended.wait(timeout_s + 10)
+            latency = time.monotonic() - gone_at
+            asker.join()
+            for query in held:
+                query.drop()
+    assert len(outcome) == 1 and isinstance(outcome[0], ObjectUnavailableError), outcome
+    assert latency < timeout_s, f"the request ended after {latency:.2f} s, at the timeout: not through liveliness"
+    print(f"request in flight ended {latency * 1000:.1f} ms after the worker's token went")
