@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import os
+import signal
 import threading
 import time
 
+import meshes
 import numpy as np
 import pytest
 import zenoh
 from conftest import wait_until
+from test_service import sample_points
 from test_worker_plumbing import FACES, POINTS, VERTICES, ThreadWorker, expected_distance
 
 from badf.client import Client
@@ -26,7 +31,8 @@ from badf.protocol import (
     encode,
     zenoh_config,
 )
-from badf.server import RouterSettings, _cli, _cuda
+from badf.server import RouterSettings, WorkerSettings, _cli, _cuda, router_process, worker_process, workers_process
+from badf.server.adf import DistanceField
 
 KEYS = KeySpace()
 
@@ -184,3 +190,121 @@ def test_a_request_in_flight_ends_when_its_worker_goes(endpoint: str) -> None:
     assert len(outcome) == 1 and isinstance(outcome[0], ObjectUnavailableError), outcome
     assert latency < timeout_s, f"the request ended after {latency:.2f} s, at the timeout: not through liveliness"
     print(f"request in flight ended {latency * 1000:.1f} ms after the worker's token went")
+
+
+# --- real processes: a router and two workers on the CPU back-end -----------------------------------------
+
+# How soon after a worker process is killed its objects must be reported unavailable. The liveliness path
+# takes milliseconds (the worker's sockets close with it); 5 s leaves room for a loaded 2-core machine and
+# still fails if the news came only from Zenoh's 10 s lease.
+UNAVAILABLE_DEADLINE_S = 5.0
+
+
+def assert_answers_like(remote, local: DistanceField, points: np.ndarray) -> None:
+    for mode in ("adf", "exact"):
+        served = remote.query(points, mode=mode, outputs=("distance", "face"))
+        direct = local.query(points, mode=mode, outputs=("distance", "face"))
+        np.testing.assert_array_equal(served.distance, direct.distance, err_msg=f"{remote.name} {mode}")
+        np.testing.assert_array_equal(served.face, direct.face, err_msg=f"{remote.name} {mode}")
+
+
+def test_objects_spread_over_two_worker_processes_and_survive_losing_one(endpoint: str, record_property) -> None:
+    vertices, faces = meshes.load("spot")
+    shapes = {f"cow{k}": vertices * np.float32(1.0 + 0.1 * k) for k in range(4)}  # four different answers
+    points = sample_points(vertices, 400)
+    left = WorkerSettings(worker_id="left", connect=(endpoint,), device="cpu", stats_interval_s=5.0)
+    right = dataclasses.replace(left, worker_id="right")
+    with (
+        router_process(RouterSettings(listen=(endpoint,))),
+        worker_process(left),
+        worker_process(right) as doomed,
+        Client(endpoint, timeout=60) as client,
+        Client(endpoint, timeout=60) as onlooker,
+    ):
+        wait_until(lambda: len(client.workers()) == 2, what="both workers behind the router")
+        remotes = {name: client.register(name, shape, faces, depth=4) for name, shape in shapes.items()}
+        assert sorted(remote.worker for remote in remotes.values()) == ["left", "left", "right", "right"]
+        assert {info.worker: info.object_count for info in onlooker.workers()} == {"left": 2, "right": 2}
+        assert [(o.name, o.worker) for o in onlooker.objects()] == [(n, r.worker) for n, r in remotes.items()]
+
+        local = {name: DistanceField(shape, faces, depth=4, device="cpu") for name, shape in shapes.items()}
+        for name, remote in remotes.items():  # each request reaches its own object's worker
+            bent = shapes[name] * np.float32(1.01)
+            assert remote.update(bent) == 1
+            local[name].update(bent)
+            assert_answers_like(remote, local[name], points)
+        for name, remote in remotes.items():
+            streamed = shapes[name] * np.float32(1.02)
+            remote.stream(streamed)
+            local[name].update(streamed)
+        wait_until(lambda: all(r.info().frame == 2 for r in remotes.values()), what="the streamed frames")
+
+        lost = [remote for remote in remotes.values() if remote.worker == "right"]
+        kept = [remote for remote in remotes.values() if remote.worker == "left"]
+        streaming = threading.Event()
+        stream_error: list[tuple[float, BaseException]] = []
+
+        def keep_streaming() -> None:  # a streaming client: only liveliness can tell it the worker is gone
+            try:
+                for step in range(100_000):
+                    lost[0].stream(shapes[lost[0].name] * np.float32(1.03 + 1e-5 * step))
+                    streaming.set()
+                    time.sleep(0.005)  # pacing, not synchronisation
+            except BaseException as error:  # noqa: BLE001 - checked below
+                stream_error.append((time.monotonic(), error))
+
+        streamer = threading.Thread(target=keep_streaming)
+        streamer.start()
+        assert streaming.wait(30)
+        killed_at = time.monotonic()
+        doomed.kill()  # SIGKILL: no goodbye
+        wait_until(
+            lambda: not any(remote.available for remote in lost),
+            timeout=UNAVAILABLE_DEADLINE_S,
+            what="the killed worker's objects to be reported unavailable",
+        )
+        noticed_s = time.monotonic() - killed_at
+        streamer.join(30)
+        assert not streamer.is_alive(), "streaming to a lost object did not stop"
+        assert isinstance(stream_error[0][1], ObjectUnavailableError), stream_error
+        stream_s = stream_error[0][0] - killed_at
+        for remote in lost:
+            with pytest.raises(ObjectUnavailableError, match="worker right is gone"):
+                remote.query(points, timeout=30)
+        record_property("unavailable_after_kill_ms", round(noticed_s * 1000, 1))
+        record_property("stream_error_after_kill_ms", round(stream_s * 1000, 1))
+        print(f"killed worker: objects unavailable after {noticed_s * 1000:.1f} ms, stream error after {stream_s * 1000:.1f} ms")
+
+        for remote in kept:  # the other worker keeps answering
+            assert_answers_like(remote, local[remote.name], points)
+        assert [o.name for o in onlooker.objects()] == [remote.name for remote in kept]
+
+        for remote in lost:  # back in service, from what the handles kept
+            info = remote.reregister()
+            assert info.worker == remote.worker == "left" and info.frame == remote.frame
+            assert_answers_like(remote, DistanceField(remote.vertices, faces, depth=4, device="cpu"), points)
+            assert remote.update(remote.vertices * np.float32(1.01)) == info.frame + 1
+        assert [o.name for o in onlooker.objects()] == sorted(shapes)
+        assert {info.worker: info.object_count for info in onlooker.workers()} == {"left": 4}
+
+
+def test_a_router_with_worker_processes_behind_it(endpoint: str) -> None:
+    """What `badf serve --gpus` runs, with CPU workers: a router process starting and stopping its workers."""
+    vertices, faces = meshes.load("spot")
+    workers = [WorkerSettings(worker_id=f"cpu{k}", device="cpu", stats_interval_s=5.0) for k in range(2)]
+    with workers_process(RouterSettings(listen=(endpoint,)), workers) as parent, Client(endpoint, timeout=60) as client:
+        wait_until(lambda: [w.worker for w in client.workers()] == ["cpu0", "cpu1"], what="both workers")
+        first, second = (client.register(name, vertices, faces, depth=4) for name in ("a", "b"))
+        assert {first.worker, second.worker} == {"cpu0", "cpu1"}
+        assert first.query(points := sample_points(vertices, 50)).frame == second.query(points).frame == 0
+        os.kill(parent.pid, signal.SIGTERM)  # the process this test started
+        parent.join(60)
+        assert parent.exitcode == 0
+        assert not first.available and not second.available
+
+
+def test_a_worker_that_cannot_start_stops_the_router_with_its_status(endpoint: str) -> None:
+    unknown_device = WorkerSettings(worker_id="nowhere", device="cuda:99")
+    with pytest.raises(WorkerUnavailableError, match="exited with status 2"):
+        with workers_process(RouterSettings(listen=(endpoint,)), [unknown_device]):
+            pass
