@@ -15,6 +15,30 @@ class NoCudaDeviceError(RuntimeError):
 
 def visible_cuda_device_count() -> int:
     """The number of CUDA devices visible here (CUDA_VISIBLE_DEVICES applies); NoCudaDeviceError if none."""
+    driver = _driver()
+    count = ctypes.c_int(0)
+    _check(driver.cuDeviceGetCount(ctypes.byref(count)))
+    if count.value == 0:
+        mask = os.environ.get("CUDA_VISIBLE_DEVICES")
+        hidden = f" (CUDA_VISIBLE_DEVICES={mask!r})" if mask is not None else ""
+        raise NoCudaDeviceError(f"no CUDA device is visible: the CUDA driver reports none{hidden}")
+    return count.value
+
+
+def cuda_device_names() -> list[str]:
+    """The names of the visible CUDA devices, in index order (for reports)."""
+    driver = _driver()
+    names = []
+    for index in range(visible_cuda_device_count()):
+        handle = ctypes.c_int(0)
+        _check(driver.cuDeviceGet(ctypes.byref(handle), index))
+        name = ctypes.create_string_buffer(256)
+        _check(driver.cuDeviceGetName(name, len(name), handle))
+        names.append(name.value.decode(errors="replace"))
+    return names
+
+
+def _driver() -> ctypes.CDLL:
     try:
         driver = ctypes.CDLL("libcuda.so.1")
     except OSError:
@@ -22,16 +46,15 @@ def visible_cuda_device_count() -> int:
             "no CUDA device is visible: the NVIDIA driver's library libcuda.so.1 is not installed on this machine"
         ) from None
     status = driver.cuInit(0)
-    count = ctypes.c_int(0)
-    if status == 0:
-        status = driver.cuDeviceGetCount(ctypes.byref(count))
-    if status not in (0, _CUDA_ERROR_NO_DEVICE):
+    if status == _CUDA_ERROR_NO_DEVICE:
+        raise NoCudaDeviceError("no CUDA device is visible: the CUDA driver reports none")
+    _check(status)
+    return driver
+
+
+def _check(status: int) -> None:
+    if status != 0:
         raise NoCudaDeviceError(f"no CUDA device is usable: the CUDA driver failed with error {status}")
-    if count.value == 0:
-        mask = os.environ.get("CUDA_VISIBLE_DEVICES")
-        hidden = f" (CUDA_VISIBLE_DEVICES={mask!r})" if mask is not None else ""
-        raise NoCudaDeviceError(f"no CUDA device is visible: the CUDA driver reports none{hidden}")
-    return count.value
 
 
 def parse_gpus(text: str, visible: int) -> list[int]:
