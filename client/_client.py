@@ -224,7 +224,7 @@ class Client:
     def _check_worker(self, worker: str, name: str | None) -> None:
         """Raise at once, without a round trip, when the client has seen `worker` go."""
         if self._worker_gone(worker):
-            raise _worker_gone_error(worker, name)
+            raise _worker_gone_error(worker, name, seen_going=True)
 
     # --- requests ----------------------------------------------------------------------------------
 
@@ -290,8 +290,8 @@ class Client:
     def _nobody_answered(self, key: str, *, name: str | None, worker: str | None, timeout: float | None) -> BadfError:
         """Why no queryable answered: the worker is gone, there is no worker, or there is no such object."""
         if worker is not None and not self._is_alive(worker, timeout):
-            return _worker_gone_error(worker, name)
-        if worker is None and not self._live and not self._worker_ids(timeout):
+            return _worker_gone_error(worker, name, seen_going=self._worker_gone(worker))
+        if worker is None and not self._live and not self.workers(timeout=timeout):
             return WorkerUnavailableError(f"no badf worker is reachable in namespace {self.keys.namespace!r}")
         if name is not None:
             return ObjectNotFoundError(
@@ -299,22 +299,15 @@ class Client:
             )
         return WorkerUnavailableError(f"nobody answered on {key}")
 
-    def _worker_ids(self, timeout: float | None) -> list[str]:
-        seconds = self.timeout if timeout is None else timeout
-        try:
-            replies = self._session.liveliness().get(self.keys.every_worker_token, timeout=seconds)
-            return [str(reply.ok.key_expr).rsplit("/", 1)[-1] for reply in replies if reply.ok is not None]
-        except zenoh.ZError:
-            return []
-
     def _is_alive(self, worker: str, timeout: float | None) -> bool:
-        """From the liveliness subscriber when it has seen `worker` come or go; else by asking. (Asking alone
-        is not enough: on a session with a liveliness subscriber, Zenoh 1.10's liveliness get was seen to
-        answer no tokens for a while after the subscriber was declared.)"""
-        with self._lock:
-            if worker in self._gone or worker in self._live:
-                return worker in self._live
-        return worker in self._worker_ids(timeout)
+        """False once the liveliness subscriber has seen `worker` go; otherwise whether `worker` answers an
+        info request. A request to a worker that dies ends as soon as the router sees its connection close,
+        which can be before this client hears of the token going, so `_live` alone would call the object
+        not found; and a liveliness get is no substitute: with a liveliness subscriber on the session,
+        Zenoh 1.10 was seen here to answer it with no tokens for a while."""
+        if self._worker_gone(worker):
+            return False
+        return any(True for _ in self._get(self.keys.worker_info(worker), InfoRequest(), timeout=timeout))
 
     def _publisher(self, key: str) -> zenoh.Publisher:
         publisher = self._publishers.get(key)
@@ -478,9 +471,14 @@ class RemoteObject:
         self._frame = max(self._frame, frame)
 
 
-def _worker_gone_error(worker: str, name: str | None) -> WorkerUnavailableError:
+def _worker_gone_error(worker: str, name: str | None, *, seen_going: bool) -> WorkerUnavailableError:
     if name is None:
-        return WorkerUnavailableError(f"worker {worker} is not running: its liveliness token is gone")
+        if seen_going:
+            return WorkerUnavailableError(f"worker {worker} is gone: its liveliness token went away")
+        return WorkerUnavailableError(
+            f"worker {worker} is not running: it has no liveliness token (not started, gone, or not yet visible "
+            "through the routers)"
+        )
     return ObjectUnavailableError(
         f"object {name!r} is unavailable: its worker {worker} is gone (its liveliness token went away), and "
         "the object's state with it; register it again, e.g. with reregister() on a handle that registered it"

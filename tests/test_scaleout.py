@@ -253,8 +253,24 @@ def test_objects_spread_over_two_worker_processes_and_survive_losing_one(endpoin
             except BaseException as error:  # noqa: BLE001 - checked below
                 stream_error.append((time.monotonic(), error))
 
+        in_flight: list[tuple[float, BaseException | None]] = []
+
+        def ask(points: np.ndarray) -> None:  # requests in flight when the worker dies
+            try:
+                lost[1].query(points, mode="exact", timeout=60)
+                in_flight.append((time.monotonic(), None))
+            except BaseException as error:  # noqa: BLE001 - checked below
+                in_flight.append((time.monotonic(), error))
+
         streamer = threading.Thread(target=keep_streaming)
         streamer.start()
+        # Two long exact queries (seconds each on a CPU): while the object's thread answers one, the other
+        # waits in its queue, so both are certainly in flight when the worker dies.
+        big = sample_points(vertices, 2_000_000)
+        askers = [threading.Thread(target=ask, args=(big,)) for _ in range(2)]
+        for asker in askers:
+            asker.start()
+        wait_until(lambda: _requests_waiting(onlooker, "right") == 1, what="one query to wait behind the other")
         assert streaming.wait(30)
         killed_at = time.monotonic()
         doomed.kill()  # SIGKILL: no goodbye
@@ -268,12 +284,21 @@ def test_objects_spread_over_two_worker_processes_and_survive_losing_one(endpoin
         assert not streamer.is_alive(), "streaming to a lost object did not stop"
         assert isinstance(stream_error[0][1], ObjectUnavailableError), stream_error
         stream_s = stream_error[0][0] - killed_at
+        for asker in askers:
+            asker.join(70)
+        assert len(in_flight) == 2 and all(isinstance(error, ObjectUnavailableError) for _, error in in_flight), in_flight
+        in_flight_s = max(at for at, _ in in_flight) - killed_at
+        assert in_flight_s < 60, "the requests in flight ended at their timeout, not through liveliness"
         for remote in lost:
             with pytest.raises(ObjectUnavailableError, match="worker right is gone"):
                 remote.query(points, timeout=30)
         record_property("unavailable_after_kill_ms", round(noticed_s * 1000, 1))
         record_property("stream_error_after_kill_ms", round(stream_s * 1000, 1))
-        print(f"killed worker: objects unavailable after {noticed_s * 1000:.1f} ms, stream error after {stream_s * 1000:.1f} ms")
+        record_property("requests_in_flight_ended_after_kill_ms", round(in_flight_s * 1000, 1))
+        print(
+            f"killed worker: objects unavailable after {noticed_s * 1000:.1f} ms, stream error after "
+            f"{stream_s * 1000:.1f} ms, requests in flight ended after {in_flight_s * 1000:.1f} ms"
+        )
 
         for remote in kept:  # the other worker keeps answering
             assert_answers_like(remote, local[remote.name], points)
@@ -286,6 +311,10 @@ def test_objects_spread_over_two_worker_processes_and_survive_losing_one(endpoin
             assert remote.update(remote.vertices * np.float32(1.01)) == info.frame + 1
         assert [o.name for o in onlooker.objects()] == sorted(shapes)
         assert {info.worker: info.object_count for info in onlooker.workers()} == {"left": 4}
+
+
+def _requests_waiting(client: Client, worker: str) -> int:
+    return next(info.requests_waiting for info in client.workers() if info.worker == worker)
 
 
 def test_a_router_with_worker_processes_behind_it(endpoint: str) -> None:
