@@ -8,8 +8,10 @@ For each worker count (1, then N) it starts what `badf serve --gpus` runs (a rou
 processes behind it, on cuda:0..N-1, or all on the CPU), registers one copy of the mesh per client through
 the client's least-loaded placement, and for each client count starts that many client processes (spawn).
 Each client, after a warm-up, loops for `--seconds`: stream the next frame of a deforming copy of the mesh,
-then query `--points` points of the field (distance, adf); the worker applies the frame before it answers
-the query, so one round trip carries one frame and one query. Reported, per worker and client count:
+then query `--points` points of the field (distance, adf): one round trip carries one frame and one query.
+(The worker usually applies the frame before it answers the query; when the query overtakes the frame,
+the reply names the older frame and the next frame may replace this one unapplied: counted as
+`stale_replies` and as frames dropped.) Reported, per worker and client count:
 aggregate frames applied per second and query points answered per second (sums over the clients of what
 each did in its own timed window), the round trip's median and p99, frames dropped, and the speed-up over
 one worker with the same clients. The workers' own counters are reported beside the clients' as a check.
@@ -176,6 +178,7 @@ def _timed_run(args: argparse.Namespace, endpoint: str, client, names: list[str]
         "median_ms": float(np.median(latencies) * 1e3),
         "p99_ms": float(np.percentile(latencies, 99) * 1e3),
         "frames_dropped": sum(result["frames_dropped"] for result in clients),
+        "stale_replies": sum(result["stale_replies"] for result in clients),
         "per_client": clients,
         "per_worker": {
             worker: {
@@ -209,11 +212,11 @@ def _client_main(
             latencies = []
             started = time.perf_counter()
             deadline = started + seconds
-            step = 0
+            step = stale = 0
             while True:
                 begin = time.perf_counter()
-                obj.stream(frames[step % _FRAME_COUNT])
-                obj.query(cloud)
+                sent = obj.stream(frames[step % _FRAME_COUNT])
+                stale += obj.query(cloud).frame < sent
                 end = time.perf_counter()
                 latencies.append(end - begin)
                 step += 1
@@ -229,6 +232,7 @@ def _client_main(
                 "round_trips": step,
                 "frames_applied": after.frames_applied - before.frames_applied,
                 "frames_dropped": after.frames_dropped - before.frames_dropped,
+                "stale_replies": stale,
                 "points": step * points,
                 "latencies_s": latencies,
             }
