@@ -318,10 +318,15 @@ def _requests_waiting(client: Client, worker: str) -> int:
 
 
 def test_a_router_with_worker_processes_behind_it(endpoint: str) -> None:
-    """What `badf serve --gpus` runs, with CPU workers: a router process starting and stopping its workers."""
+    """What `badf serve --gpus --connect` runs, with CPU workers: a router process that starts and stops its
+    workers and joins another router, the one the client knows (as on a second machine)."""
     vertices, faces = meshes.load("spot")
     workers = [WorkerSettings(worker_id=f"cpu{k}", device="cpu", stats_interval_s=5.0) for k in range(2)]
-    with workers_process(RouterSettings(listen=(endpoint,)), workers) as parent, Client(endpoint, timeout=60) as client:
+    with (
+        router_process(RouterSettings(listen=(endpoint,))),
+        workers_process(RouterSettings(connect=(endpoint,)), workers) as parent,
+        Client(endpoint, timeout=60) as client,
+    ):
         wait_until(lambda: [w.worker for w in client.workers()] == ["cpu0", "cpu1"], what="both workers")
         first, second = (client.register(name, vertices, faces, depth=4) for name in ("a", "b"))
         assert {first.worker, second.worker} == {"cpu0", "cpu1"}
