@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from badf.protocol import DEFAULT_ENDPOINT, BadfError
-from badf.server._run import run_worker
+from badf.server._run import exit_now, run_worker
 from badf.server._worker import WorkerSettings, default_worker_id
 
 
@@ -58,4 +58,5 @@ def run(args: argparse.Namespace) -> int:
     except (BadfError, ValueError) as error:
         print(f"badf serve: {error}", file=sys.stderr)
         return 2
-    return run_worker(settings)
+    exit_now(run_worker(settings))
+    return 0  # not reached: exit_now ends the process

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import signal
 import sys
 import threading
@@ -92,7 +93,18 @@ def worker_process(settings: WorkerSettings, *, start_timeout_s: float = 300.0) 
 
 
 def _child_main(settings: WorkerSettings, ready: _Settable) -> None:
-    sys.exit(run_worker(settings, ready))  # the exit status tells the parent why a worker did not start
+    exit_now(run_worker(settings, ready))  # the exit status tells the parent why a worker did not start
+
+
+def exit_now(status: int) -> None:
+    """End a worker process once `run_worker` has returned: flush the logs and leave without interpreter
+    finalisation. By then the worker's threads are joined and its session is closed; finalisation only
+    tears down Zenoh's native threads, and one re-entering Python during it made about one exit in three
+    abort (SIGABRT, "FATAL: exception not rethrown") in the demo on 2026-11-21."""
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
 
 
 def end_process(process: multiprocessing.Process, *, grace_s: float = 30.0) -> None:
