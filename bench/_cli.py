@@ -7,6 +7,8 @@ import importlib
 
 _BENCHMARKS = {
     "engine": ("badf.bench.engine", "per-stage build/update times, memory, and the dense-grid baseline"),
+    "accuracy": ("badf.bench.accuracy", "error against run time (ADF depths, exact, dense grid, CPU peers) and the "
+                 "stability table"),
 }
 
 
