@@ -352,6 +352,10 @@ def device_slug(device: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.render:
+        report = json.loads(pathlib.Path(args.render).read_text())
+        write_outputs(report, pathlib.Path(args.out_dir), pathlib.Path(args.render).stem.removeprefix("accuracy-"))
+        return 0
     import warp as wp
 
     from badf.server.adf import DistanceField
@@ -371,6 +375,9 @@ def run(args: argparse.Namespace) -> int:
                      "switch_depth": args.switch_depth, "oracle_workers": args.workers},
         "meshes": [], "rows": [], "switches": [], "peers": [], "peers_skipped": {}, "stability": [],
     }
+    slug = device_slug(args.device)
+    partial = pathlib.Path(args.out_dir) / "results" / f"accuracy-{slug}.json"
+    partial.parent.mkdir(parents=True, exist_ok=True)
     pool = OraclePool(args.workers)
     truths: dict[str, PointSets] = {}
     try:
@@ -416,13 +423,15 @@ def run(args: argparse.Namespace) -> int:
                 report["peers_skipped"].update(skipped)
                 for row in rows:
                     _print_row(row)
+            report["seconds"] = round(time.perf_counter() - started, 1)
+            partial.write_text(json.dumps(report, indent=1))  # so far, in case the run is cut short
     finally:
         pool.close()
     if args.stability:
         print("stability cases:", flush=True)
         report["stability"] = run_stability(args)
     report["seconds"] = round(time.perf_counter() - started, 1)
-    write_outputs(report, pathlib.Path(args.out_dir), device_slug(args.device))
+    write_outputs(report, pathlib.Path(args.out_dir), slug)
     return 0
 
 
@@ -473,6 +482,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--large-batch", type=int, default=10_000_000, help="points of the large-batch stability case")
     parser.add_argument("--workers", type=int, default=len(os.sched_getaffinity(0)), help="oracle processes")
     parser.add_argument("--out-dir", default="docs", help="where the markdown, plots and results/ JSON go")
+    parser.add_argument("--render", default=None, metavar="JSON",
+                        help="only write the markdown and plots of an earlier run's results/accuracy-*.json")
 
 
 def main() -> int:
