@@ -68,8 +68,8 @@ def render_markdown(report: dict, plot_names: list[str], json_name) -> str:
         f"**Modes**: ADF at depths {', '.join(map(str, s['depths']))} with surface-coverage refinement (every "
         "finest cell the surface crosses, plus one ring) and with the paper's rule (only cells holding a triangle's "
         f"centroid, no ring); exact BVH queries (depth {s['switch_depth']} octree for the seeds); the dense grid "
-        f"of the same finest resolution (up to depth {s['dense_max_depth']}): `wp.Mesh` plus `mesh_query_point` "
-        "at every lattice point, trilinear lookup.",
+        f"of the same finest resolution (up to depth {s['dense_max_depth']}): `wp.Mesh` plus "
+        "`mesh_query_point_sign_normal` at every lattice point, trilinear lookup.",
         "",
     ]
     lines += [f"![{name}]({name})" for name in plot_names] + [""]

@@ -237,7 +237,7 @@ def measure_dense(mesh: Mesh, sets: PointSets, depth: int, domain: tuple[np.ndar
     def local(points):
         return (np.asarray(points, np.float64) - centre).astype(np.float32)
 
-    grid = DenseGrid(local(mesh.vertices), mesh.faces, side=side, depth=depth, winding=not mesh.closed, device=device)
+    grid = DenseGrid(local(mesh.vertices), mesh.faces, side=side, depth=depth, device=device)
     build_ms = timed_ms(grid.build, device, repeat=args.repeat, budget_s=args.budget)
     errors = errors_of(answers_of(lambda p: grid.query(local(p)), sets, depth), sets, depth, mesh.diag)
     batch = local((np.random.default_rng(7).random((args.query_batch, 3)) - 0.5) * side + centre)
@@ -248,7 +248,7 @@ def measure_dense(mesh: Mesh, sets: PointSets, depth: int, domain: tuple[np.ndar
         "mesh": mesh.name, "mode": "dense", "depth": depth, "options": {"lattice": f"{grid.count}^3"},
         "outputs": ["distance"], "build_ms": build_ms, "update_ms": update_ms,
         "query_ms_per_million": query_ms * 1e6 / len(batch), "device_bytes": grid.nbytes(),
-        "sign": "winding" if grid.winding else "pseudonormal", "errors": errors,
+        "sign": "pseudonormal (warp)", "errors": errors,
     }
 
 
@@ -469,8 +469,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated mesh names (shared data set, or bunny-278k / bunny-1.1m)")
     parser.add_argument("--depths", default="5,6,7,8,9", help="ADF depths, comma-separated")
     parser.add_argument("--dense-max-depth", type=int, default=9, help="dense-grid baseline up to this depth")
-    parser.add_argument("--points", type=int, default=2000, help="uniform points, and surface samples, per mesh")
-    parser.add_argument("--near-points", type=int, default=1000, help="points within two finest cells, per depth")
+    parser.add_argument("--points", type=int, default=1000, help="uniform points, and surface samples, per mesh")
+    parser.add_argument("--near-points", type=int, default=500, help="points within two finest cells, per depth")
     parser.add_argument("--query-batch", type=int, default=1_000_000, help="points per timed query call")
     parser.add_argument("--repeat", type=int, default=5, help="timed repeats per measurement (at most)")
     parser.add_argument("--budget", type=float, default=1.0, help="seconds after which a measurement stops repeating")
