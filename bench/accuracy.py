@@ -374,10 +374,15 @@ def run(args: argparse.Namespace) -> int:
                      "query_batch": args.query_batch, "repeat": args.repeat, "dense_max_depth": args.dense_max_depth,
                      "switch_depth": args.switch_depth, "oracle_workers": args.workers},
         "meshes": [], "rows": [], "switches": [], "peers": [], "peers_skipped": {}, "stability": [],
+        "load_average_at_start": os.getloadavg()[0],  # other work on the machine disturbs the times
     }
     slug = device_slug(args.device)
     partial = pathlib.Path(args.out_dir) / "results" / f"accuracy-{slug}.json"
     partial.parent.mkdir(parents=True, exist_ok=True)
+    if args.stability:  # first: it is short, and matters most if a long run is cut off
+        print("stability cases:", flush=True)
+        report["stability"] = run_stability(args)
+        partial.write_text(json.dumps(report, indent=1))
     pool = OraclePool(args.workers)
     truths: dict[str, PointSets] = {}
     try:
@@ -398,7 +403,7 @@ def run(args: argparse.Namespace) -> int:
                       f"{args.near_points} near points in {time.perf_counter() - t0:.1f} s", flush=True)
             sets = truths[mesh.truth_of]
             report["meshes"].append({"name": name, "vertices": len(mesh.vertices), "faces": len(mesh.faces),
-                                     "closed": mesh.closed, "diag": mesh.diag, "truth_of": mesh.truth_of,
+                                     "closed": mesh.closed, "diag": mesh.diag, "domain_side": side, "truth_of": mesh.truth_of,
                                      "vertices_off_truth_diag": mesh.off_truth,
                                      "sign": probe.info()["sign"]})
             del probe
@@ -427,9 +432,7 @@ def run(args: argparse.Namespace) -> int:
             partial.write_text(json.dumps(report, indent=1))  # so far, in case the run is cut short
     finally:
         pool.close()
-    if args.stability:
-        print("stability cases:", flush=True)
-        report["stability"] = run_stability(args)
+    report["load_average_at_end"] = os.getloadavg()[0]
     report["seconds"] = round(time.perf_counter() - started, 1)
     write_outputs(report, pathlib.Path(args.out_dir), slug)
     return 0
