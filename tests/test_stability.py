@@ -22,7 +22,7 @@ def _params():
 
 
 @pytest.mark.timeout(300)  # a hang is a failure
-@pytest.mark.parametrize("case", _params())
+@pytest.mark.parametrize("case", list(_params()))
 def test_stability_case(device, case):
     try:
         outcome = case.run(device)
