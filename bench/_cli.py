@@ -8,6 +8,8 @@ import importlib
 _BENCHMARKS = {
     "engine": ("badf.bench.engine", "per-stage build/update times, memory, and the dense-grid baseline"),
     "service": ("badf.bench.service", "frame + query round trip and query throughput, service beside in-process"),
+    "accuracy": ("badf.bench.accuracy", "error against run time (ADF depths, exact, dense grid, CPU peers) and the "
+                 "stability table"),
 }
 
 
