@@ -9,6 +9,8 @@ _BENCHMARKS = {
     "engine": ("badf.bench.engine", "per-stage build/update times, memory, and the dense-grid baseline"),
     "service": ("badf.bench.service", "frame + query round trip and query throughput, service beside in-process"),
     "scaleout": ("badf.bench.scaleout", "aggregate frames and query points per second, one worker against N (GPUs)"),
+    "accuracy": ("badf.bench.accuracy", "error against run time (ADF depths, exact, dense grid, CPU peers) and the "
+                 "stability table"),
 }
 
 

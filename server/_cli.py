@@ -10,7 +10,7 @@ import sys
 from badf.protocol import DEFAULT_ENDPOINT, BadfError
 from badf.server._cuda import NoCudaDeviceError, parse_gpus, visible_cuda_device_count
 from badf.server._router import RouterSettings
-from badf.server._run import run_gpu_workers, run_router, run_worker
+from badf.server._run import exit_now, run_gpu_workers, run_router, run_worker
 from badf.server._worker import WorkerSettings, default_worker_id
 
 
@@ -97,10 +97,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"badf serve: {error}", file=sys.stderr)
         return 2
     if args.router_only:
-        return run_router(router)
-    if gpus is not None:
-        return run_gpu_workers(settings, gpus)
-    return run_worker(settings)
+        exit_now(run_router(router))
+    elif gpus is not None:
+        exit_now(run_gpu_workers(settings, gpus))
+    else:
+        exit_now(run_worker(settings))
+    return 0  # not reached: exit_now ends the process
 
 
 def gpus_from(args: argparse.Namespace) -> list[int]:

@@ -9,6 +9,7 @@ import dataclasses
 import logging
 import multiprocessing
 import multiprocessing.connection
+import os
 import signal
 import socket
 import sys
@@ -224,16 +225,27 @@ def _spawn(
 
 
 def _worker_main(settings: WorkerSettings, ready: _Settable) -> None:
-    sys.exit(run_worker(settings, ready))  # the exit status tells the parent why a worker did not start
+    exit_now(run_worker(settings, ready))  # the exit status tells the parent why a worker did not start
+
+
+def exit_now(status: int) -> None:
+    """End a badf process (worker, router) once its `run_*` has returned: flush the logs and leave without
+    interpreter finalisation. By then its threads are joined and its session is closed; finalisation only
+    tears down Zenoh's native threads, and one re-entering Python during it made about one exit in three
+    abort (SIGABRT, "FATAL: exception not rethrown") in the demo on 2026-11-21."""
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
 
 
 def _router_main(settings: RouterSettings, ready: _Settable) -> None:
-    sys.exit(run_router(settings, ready))
+    exit_now(run_router(settings, ready))
 
 
 def _workers_main(settings: tuple[RouterSettings, list[WorkerSettings]], ready: _Settable) -> None:
     router, workers = settings
-    sys.exit(run_workers(router, workers, ready))
+    exit_now(run_workers(router, workers, ready))
 
 
 def end_process(process: multiprocessing.Process, *, grace_s: float = 30.0) -> None:
