@@ -476,8 +476,7 @@ def _worker_gone_error(worker: str, name: str | None, *, seen_going: bool) -> Wo
         if seen_going:
             return WorkerUnavailableError(f"worker {worker} is gone: its liveliness token went away")
         return WorkerUnavailableError(
-            f"worker {worker} is not running: it has no liveliness token (not started, gone, or not yet visible "
-            "through the routers)"
+            f"worker {worker} does not answer: not started, gone, or not yet visible through the routers"
         )
     return ObjectUnavailableError(
         f"object {name!r} is unavailable: its worker {worker} is gone (its liveliness token went away), and "
