@@ -230,9 +230,14 @@ class DistanceField:
             bits |= OUTPUT_BITS[name]
         tree = self._octree.view(self._domain.origin, self._domain.side)
         bvh, sign = self._bvh.view(), self._normals.view()
+        # float32 points are recentred on the device (the same float32 subtraction); float64 ones on the host
+        # in float64, which keeps the precision of points far from the origin
+        on_device = p.dtype == np.float32
+        offset = self._domain.centre.astype(np.float32) if on_device else np.zeros(3, np.float32)
         for start in range(0, count, QUERY_CHUNK):
-            local = self._domain.to_local(p[start : start + QUERY_CHUNK])
-            self._points.run(local, exact=mode == "exact", outputs=bits, octree=tree,
+            chunk = p[start : start + QUERY_CHUNK]
+            self._points.run(chunk if on_device else self._domain.to_local(chunk), offset,
+                             exact=mode == "exact", outputs=bits, octree=tree,
                              corner_value=self._corners.value, corner_leaf=self._corners.leaf, bvh=bvh, sign=sign,
                              side=self._domain.side, band=self._band, results=arrays, start=start)
         if "closest_point" in arrays:
