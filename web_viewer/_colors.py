@@ -11,10 +11,11 @@ import math
 
 import numpy as np
 
-# (position in [-1, 1], RGB): deep blue, light blue, white, light red, deep red.
-_ANCHORS = np.array([-1.0, -0.5, 0.0, 0.5, 1.0])
+# (position in [-1, 1], RGB): deep blue, blue, white, orange-red, deep red. The middle anchors sit near
+# zero so that thin insides (a tenth of the scale deep) already read as blue.
+_ANCHORS = np.array([-1.0, -0.3, 0.0, 0.3, 1.0])
 _ANCHOR_RGB = np.array(
-    [(37, 80, 160), (120, 165, 222), (247, 247, 247), (236, 142, 104), (165, 28, 40)], dtype=np.float64
+    [(37, 80, 160), (105, 150, 215), (247, 247, 247), (232, 128, 92), (165, 28, 40)], dtype=np.float64
 )
 # Signed distances are banded: every BAND_COUNT-th of the scale a thin darker line, so the field's
 # spacing (and any kink of the interpolation) shows in the image.
@@ -22,19 +23,24 @@ BAND_COUNT = 5
 _BAND_WIDTH = 0.08  # fraction of a band drawn dark
 _BAND_SHADE = 0.86
 ZERO_CONTOUR_RGB = (20, 20, 20)
+MISSING_RGB = (128, 128, 128)
 
 
 def diverging_rgb(distance: np.ndarray, scale: float) -> np.ndarray:
     """(..., 3) uint8 colours of signed distances: blue inside (< 0), white at 0, red outside, saturated at
-    +-`scale` (> 0, the object's units), with a darker line every `scale` / BAND_COUNT."""
+    +-`scale` (> 0, the object's units), with a darker line every `scale` / BAND_COUNT; NaN is grey."""
     if not (math.isfinite(scale) and scale > 0):
         raise ValueError(f"scale must be a finite positive number of object units, got {scale!r}")
-    distance = np.asarray(distance, dtype=np.float32)
-    rgb = _map(distance / np.float32(scale))
-    bands = np.abs(distance) * np.float32(BAND_COUNT / scale)
-    on_band = ((bands % 1.0) < _BAND_WIDTH) & (bands >= 1.0)
-    rgb[on_band] *= _BAND_SHADE
-    return np.rint(rgb).astype(np.uint8)
+    t = np.asarray(distance, dtype=np.float32) * np.float32(1.0 / scale)
+    missing = np.isnan(t)
+    index = np.rint((np.clip(np.where(missing, 0.0, t), -1.0, 1.0) + 1.0) * ((_TABLE_SIZE - 1) / 2)).astype(np.intp)
+    rgb = _TABLE[index]
+    bands = np.abs(t) * np.float32(BAND_COUNT)
+    with np.errstate(invalid="ignore"):  # NaN and infinity are on no band
+        on_band = ((bands % 1.0) < _BAND_WIDTH) & (bands >= 1.0)
+    rgb[on_band] = _TABLE_SHADED[index[on_band]]
+    rgb[missing] = MISSING_RGB
+    return rgb
 
 
 def _map(t: np.ndarray) -> np.ndarray:
@@ -44,6 +50,12 @@ def _map(t: np.ndarray) -> np.ndarray:
     for channel in range(3):
         rgb[..., channel] = np.interp(t, _ANCHORS, _ANCHOR_RGB[:, channel])
     return rgb
+
+
+# The map tabulated at _TABLE_SIZE evenly spaced t in [-1, 1], plain and shaded (on a band).
+_TABLE_SIZE = 2049
+_TABLE = np.rint(_map(np.linspace(-1.0, 1.0, _TABLE_SIZE))).astype(np.uint8)
+_TABLE_SHADED = np.rint(_map(np.linspace(-1.0, 1.0, _TABLE_SIZE)) * _BAND_SHADE).astype(np.uint8)
 
 
 def auto_scale(distance: np.ndarray) -> float:
@@ -90,10 +102,10 @@ def legend_html(scale: float) -> str:
         f"rgb({r:.0f},{g:.0f},{b:.0f}) {100 * (t + 1) / 2:.1f}%" for t, (r, g, b) in zip(positions, _map(positions))
     ]
     ticks = "".join(
-        f'<span style="position:absolute;left:{100 * (k + 1) / 2:.1f}%;transform:translateX(-50%)">'
+        f'<span style="position:absolute;left:{100 * (k + 1) / 2:.1f}%;transform:translateX({shift})">'
         f"{html.escape(format_distance(k * scale))}</span>"
-        for k in (-1.0, -0.5, 0.0, 0.5, 1.0)
-    )
+        for k, shift in ((-1.0, "0"), (-0.5, "-50%"), (0.0, "-50%"), (0.5, "-50%"), (1.0, "-100%"))
+    )  # the end labels stay inside the bar's width
     return (
         '<div style="font-size:0.8em;padding:0 0.9em">'
         "<div>signed distance (object units): inside &lt; 0 &lt; outside; "
