@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One call on a GPU machine (the device tool): set up, check on CUDA, then time.
-#   bash bench/gpu_session.sh [tests] [engine] [service] [accuracy] ...
+#   bash bench/gpu_session.sh [tests] [engine] [service] [viewer] [accuracy] ...
 # Expects warp-lang and the wheels unpacked by ../shared/gpu/setup.sh (sourced before), the shared meshes
 # copied into $BADF_SHARED_DATA (default .gpudata/), and writes logs and JSON under $OUT.
 set -uo pipefail
@@ -21,6 +21,9 @@ for step in "$@"; do
     service)
       python3 -m badf.bench.service --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --out "$out/service-bunny.json" \
         2>&1 | tee "$out/service-bunny.log" ;;
+    viewer)
+      python3 -m badf.bench.viewer --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --out "$out/viewer-bunny.json" \
+        2>&1 | tee "$out/viewer-bunny.log" ;;
     *)
       echo "unknown step $step" ;;
   esac
