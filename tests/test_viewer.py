@@ -4,9 +4,12 @@ and the whole path in a real headless Chromium: a worker process, the viewer, th
 from __future__ import annotations
 
 import argparse
+import signal
+import socket
 import subprocess
 import sys
 import time
+import urllib.request
 from pathlib import Path
 
 import meshes
@@ -200,6 +203,33 @@ def bend(vertices: np.ndarray, amount: float) -> np.ndarray:
     bent = vertices.copy()
     bent[:, 0] += amount * height**2
     return bent
+
+
+def test_badf_view_serves_the_page_and_stops_on_sigint(served) -> None:
+    endpoint, _, _ = served
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    code = f"from badf.cli import main; raise SystemExit(main(['view', '--connect', '{endpoint}', '--port', '{port}']))"
+    process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        wait_until(lambda: page_answers(port) or process.poll() is not None, timeout=120, what="the page")
+        assert process.poll() is None, process.stderr.read().decode()
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=60) == 0
+        assert f"open http://127.0.0.1:{port}/" in process.stderr.read().decode()
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(timeout=30)
+
+
+def page_answers(port: int) -> bool:
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2) as response:
+            return response.status == 200
+    except OSError:
+        return False
 
 
 def observe_for(seconds: float) -> None:

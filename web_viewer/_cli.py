@@ -51,15 +51,15 @@ def settings_from(args: argparse.Namespace) -> ViewerSettings:
 
 
 def run(args: argparse.Namespace) -> int:
+    stop = threading.Event()  # set by SIGINT or SIGTERM, also one that comes while the viewer starts
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda _number, _frame: stop.set())
     try:
         settings = settings_from(args)
         viewer = Viewer(settings)
     except (BadfError, ValueError, ImportError) as error:
         print(f"badf view: {error}", file=sys.stderr)
         return 2
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda _number, _frame: stop.set())
     with viewer:
         print(f"badf view: open {viewer.url} (workers at {settings.connect}); Ctrl-C stops", file=sys.stderr)
         while not stop.wait(1.0):
