@@ -205,6 +205,46 @@ def bend(vertices: np.ndarray, amount: float) -> np.ndarray:
     return bent
 
 
+def test_corner_probes_read_the_corners_own_samples(served) -> None:
+    """The viewer colours each leaf corner by the field at a probe just inside its leaf; that must be the
+    corner's sample, which the engine computed as the exact distance there."""
+    _, client, _ = served
+    remote = client.object("spot")
+    cut = remote.slice("z", 0.1, resolution=16)
+    corners, probes = leaf_corners(cut.cell_boxes, cut.cell_flags)
+    assert len(corners) > 100
+    sampled = remote.query(probes, mode="adf").distance
+    exact = remote.query(corners, mode="exact").distance
+    largest_leaf = float((cut.cell_boxes[:, 1] - cut.cell_boxes[:, 0]).max())
+    np.testing.assert_allclose(sampled, exact, rtol=0, atol=2e-3 * largest_leaf)  # the probe's offset, 1-Lipschitz
+
+
+def test_the_viewer_switches_objects_and_outlives_a_deletion(served) -> None:
+    endpoint, client, _ = served
+    client.register("ball", *meshes.load("sphere"), depth=4)
+    try:
+        with Viewer(ViewerSettings(connect=endpoint, port=0, watch_without_browser=True)) as viewer:
+            wait_until(lambda: viewer.status().objects == ("ball", "spot"), timeout=60, what="both objects listed")
+            wait_until(lambda: shows(viewer, "ball"), timeout=60, what="a slice of the first object by name")
+            viewer.set_view(object_name="spot", axis="x", corners=True)
+            wait_until(lambda: shows(viewer, "spot") and viewer.status().corner_points > 0, timeout=60,
+                       what="a slice of spot with its corner samples")  # fmt: skip
+            assert viewer.status().slice_axis == "x"
+            viewer.set_view(object_name="ball")
+            wait_until(lambda: shows(viewer, "ball"), timeout=60, what="the ball again")
+            client.object("ball").delete()
+            wait_until(lambda: shows(viewer, "spot"), timeout=60, what="the viewer falling back to spot")
+            wait_until(lambda: viewer.status().problem is None, timeout=60, what="the problem to clear")
+    finally:
+        if "ball" in [info.name for info in client.objects()]:
+            client.object("ball").delete()
+
+
+def shows(viewer: Viewer, name: str) -> bool:
+    status = viewer.status()
+    return status.object_name == name and status.slice_frame is not None and status.problem is None
+
+
 def test_badf_view_serves_the_page_and_stops_on_sigint(served) -> None:
     endpoint, _, _ = served
     with socket.socket() as probe:

@@ -134,6 +134,7 @@ class ViewerStatus:
     slice_frame: int | None
     slice_axis: str | None
     slice_position: float | None
+    corner_points: int  # corner samples drawn with the last slice
     mesh_frame: int | None
     slices_drawn: int
     meshes_drawn: int
@@ -161,6 +162,7 @@ class _Shown:
     box_centre: np.ndarray  # the middle of the bounding box of the first vertices seen
     slice_view: SliceView | None = None
     slice_frame: int | None = None
+    corner_points: int = 0
     scale: float | None = None
 
 
@@ -275,6 +277,7 @@ class Viewer:
                 slice_frame=None if shown is None else shown.slice_frame,
                 slice_axis=None if view is None else view.axis,
                 slice_position=None if view is None else view.position,
+                corner_points=0 if shown is None else shown.corner_points,
                 mesh_frame=None if shown is None else shown.mesh_frame,
                 slices_drawn=self._slices_drawn,
                 meshes_drawn=self._meshes_drawn,
@@ -568,6 +571,7 @@ class Viewer:
         drawn = time.perf_counter()
         with self._lock:
             shown.slice_view, shown.slice_frame, shown.scale = view, cut.frame, scale
+            shown.corner_points = 0 if corners is None else len(corners[0])
             self._slice_times.append((time.monotonic(), received - asked, drawn - received))
             self._slices_drawn += 1
 
