@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import signal
 import sys
 import threading
@@ -51,6 +52,8 @@ def settings_from(args: argparse.Namespace) -> ViewerSettings:
 
 
 def run(args: argparse.Namespace) -> int:
+    if not logging.getLogger().handlers:
+        logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(asctime)s badf %(levelname)s %(message)s")
     stop = threading.Event()  # set by SIGINT or SIGTERM, also one that comes while the viewer starts
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda _number, _frame: stop.set())

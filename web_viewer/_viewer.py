@@ -12,6 +12,7 @@ browser slows neither this process nor the workers.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -41,6 +42,8 @@ from badf.web_viewer._colors import (
     level_rgb,
 )
 from badf.web_viewer._plane import PlaneFrame, cell_outlines, leaf_corners, on_both_sides, zero_contour
+
+log = logging.getLogger("badf.web_viewer")
 
 UpDirection = Literal["+x", "+y", "+z", "-x", "-y", "-z"]
 UP_DIRECTIONS: tuple[str, ...] = ("+x", "+y", "+z", "-x", "-y", "-z")
@@ -399,6 +402,10 @@ class Viewer:
                 if isinstance(error, ObjectNotFoundError):
                     self._forget_object()
                     due.listing = 0.0
+                sleep_s = due.hold_back(_RETRY_PERIOD_S)
+            except Exception as error:  # noqa: BLE001 - a bug here must not leave the page frozen without a word
+                log.exception("the viewer's refresh failed")
+                self._set_problem(f"internal error in the viewer: {type(error).__name__}: {error}")
                 sleep_s = due.hold_back(_RETRY_PERIOD_S)
 
     def _turn(self, due: _Due) -> float:
