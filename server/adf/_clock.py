@@ -43,7 +43,10 @@ class StageClock:
             self._recorded.append(name)
 
     def times_ms(self) -> dict[str, float]:
+        """Each recorded stage's time; on CUDA this waits for the last stage's end event only (not the
+        whole device, where other objects' work may be queued)."""
         if not self.device.is_cuda:
             return {name: round(self._wall[name], 4) for name in self._recorded}
-        wp.synchronize_device(self.device)
+        for name in self._recorded:
+            wp.synchronize_event(self._events[name][1])
         return {name: round(wp.get_event_elapsed_time(*self._events[name]), 4) for name in self._recorded}

@@ -1,0 +1,87 @@
+"""`badf demo` end to end, headless: it exits 0, prints its stats, and leaves no process behind."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from conftest import free_endpoint, wait_until
+
+DEMO_TIMEOUT_S = 900  # includes the first kernel compilation on a 2-core machine
+
+
+def _group_members(pgid: int) -> list[int]:
+    """Process ids whose process group is `pgid` (Linux /proc)."""
+    members = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as handle:
+                fields = handle.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid:  # fields after the name: state, ppid, pgrp
+            members.append(int(entry))
+    return members
+
+
+def _start(*args: str) -> subprocess.Popen:
+    # its own session, so the demo and everything it starts share one process group to inspect
+    return subprocess.Popen(
+        [sys.executable, "-m", "badf.cli", "demo", *args, "--no-viewer", "--listen", free_endpoint()],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+    )  # fmt: skip
+
+
+def _finish(process: subprocess.Popen, timeout: float) -> str:
+    try:
+        output, _ = process.communicate(timeout=timeout)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    return output
+
+
+def _assert_nothing_left(pgid: int) -> None:
+    wait_until(lambda: not _group_members(pgid), timeout=60, what=f"every process of the demo's group {pgid} to end")
+
+
+@pytest.mark.parametrize("scene", ["morph", "cloth"])
+def test_demo_runs_frames_prints_stats_and_cleans_up(scene):
+    process = _start(scene, "--frames", "30")
+    output = _finish(process, DEMO_TIMEOUT_S)
+    assert process.returncode == 0, output
+    assert "summary: 30 frames" in output, output
+    assert "frame    30" in output
+    if scene == "cloth":
+        assert "all finite" in output
+    _assert_nothing_left(process.pid)
+
+
+def test_ctrl_c_ends_the_demo_cleanly():
+    process = _start("morph")
+    lines = []
+    deadline = time.monotonic() + DEMO_TIMEOUT_S
+    try:
+        for line in process.stdout:  # until the demo has streamed a few frames
+            lines.append(line)
+            if line.startswith("frame     3"):
+                break
+            assert time.monotonic() < deadline, "no frames before the deadline"
+        os.kill(process.pid, signal.SIGINT)
+        rest = _finish(process, 120)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    output = "".join(lines) + rest
+    assert process.returncode == 0, output
+    assert "summary:" in output
+    _assert_nothing_left(process.pid)
