@@ -20,7 +20,7 @@ from service_processes import worker_on
 
 from badf.client import Client
 from badf.protocol import CELL_EMPTY, CELL_LEAF
-from badf.web_viewer import Viewer, ViewerSettings
+from badf.web_viewer import Viewer, ViewerSettings, viewer_process
 from badf.web_viewer import _cli as viewer_cli
 from badf.web_viewer._browser import HeadlessChromium, find_chromium, group_alive, slice_missing
 from badf.web_viewer._colors import auto_scale, diverging_rgb, legend_html, level_rgb, round_up
@@ -247,9 +247,7 @@ def shows(viewer: Viewer, name: str) -> bool:
 
 def test_badf_view_serves_the_page_and_stops_on_sigint(served) -> None:
     endpoint, _, _ = served
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
+    port = free_port()
     code = f"from badf.cli import main; raise SystemExit(main(['view', '--connect', '{endpoint}', '--port', '{port}']))"
     process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
@@ -262,6 +260,24 @@ def test_badf_view_serves_the_page_and_stops_on_sigint(served) -> None:
         if process.poll() is None:
             process.kill()
             process.wait(timeout=30)
+
+
+def test_viewer_process_serves_until_the_block_ends(served) -> None:
+    endpoint, _, _ = served
+    port = free_port()
+    with viewer_process(connect=endpoint, port=port) as url:
+        assert url == f"http://127.0.0.1:{port}/"
+        wait_until(lambda: page_answers(port), timeout=60, what="the page")
+    assert not page_answers(port)
+    with pytest.raises(RuntimeError, match="exited"):
+        with viewer_process(connect=free_endpoint(), port=0, timeout_s=1):
+            pass  # no router there: the child cannot start
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
 
 
 def page_answers(port: int) -> bool:
