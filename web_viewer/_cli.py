@@ -54,6 +54,7 @@ def settings_from(args: argparse.Namespace) -> ViewerSettings:
 def run(args: argparse.Namespace) -> int:
     if not logging.getLogger().handlers:
         logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(asctime)s badf %(levelname)s %(message)s")
+        logging.getLogger("websockets").setLevel(logging.WARNING)  # viser's web server: no line per start and stop
     stop = threading.Event()  # set by SIGINT or SIGTERM, also one that comes while the viewer starts
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda _number, _frame: stop.set())

@@ -68,6 +68,7 @@ def _serve(settings: ViewerSettings, urls: Any) -> None:
         signal.signal(signum, lambda _number, _frame: stop.set())
     if not logging.getLogger().handlers:
         logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(asctime)s badf %(levelname)s %(message)s")
+        logging.getLogger("websockets").setLevel(logging.WARNING)  # viser's web server: no line per start and stop
     try:
         viewer = Viewer(settings)
     except (BadfError, ValueError, ImportError) as error:
