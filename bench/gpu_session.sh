@@ -22,6 +22,9 @@ for step in "$@"; do
       python3 -m badf.bench.service --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --out "$out/service-bunny.json" \
         2>&1 | tee "$out/service-bunny.log" ;;
     viewer)
+      # the bunny's 256x256 slices as the viewer asks for them, its drawing, and following a 60 fps stream;
+      # about 2 minutes (most of it the worker's first kernel build). The viewer's own rows need viser on the
+      # machine: ../shared/gpu/pack.sh viser msgspec websockets zstandard (without it they are skipped, said so)
       python3 -m badf.bench.viewer --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --out "$out/viewer-bunny.json" \
         2>&1 | tee "$out/viewer-bunny.log" ;;
     scaleout)
