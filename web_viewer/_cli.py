@@ -9,6 +9,7 @@ import sys
 import threading
 
 from badf.protocol import DEFAULT_ENDPOINT, BadfError
+from badf.web_viewer._process import exit_now
 from badf.web_viewer._viewer import RESOLUTIONS, UP_DIRECTIONS, Viewer, ViewerSettings
 
 
@@ -68,4 +69,5 @@ def run(args: argparse.Namespace) -> int:
         print(f"badf view: open {viewer.url} (workers at {settings.connect}); Ctrl-C stops", file=sys.stderr)
         while not stop.wait(1.0):
             pass
-    return 0
+    exit_now(0)
+    return 0  # not reached

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import queue
 import signal
 import sys
@@ -78,3 +79,14 @@ def _serve(settings: ViewerSettings, urls: Any) -> None:
         urls.put(viewer.url)
         while not stop.wait(1.0):
             pass
+    exit_now(0)
+
+
+def exit_now(status: int) -> None:
+    """End a viewer process once its viewer is closed: flush the logs and leave without interpreter
+    finalisation, which only tears down Zenoh's native threads, and in which one re-entering Python can abort
+    the process (SIGABRT, "FATAL: exception not rethrown"; seen here, and in main's demo)."""
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
