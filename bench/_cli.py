@@ -8,6 +8,7 @@ import importlib
 _BENCHMARKS = {
     "engine": ("badf.bench.engine", "per-stage build/update times, memory, and the dense-grid baseline"),
     "service": ("badf.bench.service", "frame + query round trip and query throughput, service beside in-process"),
+    "viewer": ("badf.bench.viewer", "slice round trips as the viewer asks, its drawing, and following a stream"),
     "scaleout": ("badf.bench.scaleout", "aggregate frames and query points per second, one worker against N (GPUs)"),
     "accuracy": ("badf.bench.accuracy", "error against run time (ADF depths, exact, dense grid, CPU peers) and the "
                  "stability table"),

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One call on a GPU machine (the device tool): set up, check on CUDA, then time.
-#   bash bench/gpu_session.sh [tests] [engine] [service] [scaleout] [accuracy] ...
+#   bash bench/gpu_session.sh [tests] [engine] [service] [viewer] [scaleout] [accuracy] ...
 # Expects warp-lang and the wheels unpacked by ../shared/gpu/setup.sh (sourced before), the shared meshes
 # copied into $BADF_SHARED_DATA (default .gpudata/), and writes logs and JSON under $OUT.
 set -uo pipefail
@@ -21,6 +21,12 @@ for step in "$@"; do
     service)
       python3 -m badf.bench.service --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --out "$out/service-bunny.json" \
         2>&1 | tee "$out/service-bunny.log" ;;
+    viewer)
+      # the bunny's 256x256 slices as the viewer asks for them, its drawing, and following a 60 fps stream;
+      # about 2 minutes (most of it the worker's first kernel build). The viewer's own rows need viser on the
+      # machine: ../shared/gpu/pack.sh viser msgspec websockets zstandard (without it they are skipped, said so)
+      python3 -m badf.bench.viewer --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --out "$out/viewer-bunny.json" \
+        2>&1 | tee "$out/viewer-bunny.log" ;;
     scaleout)
       # one worker per visible GPU against one worker, 8 and 16 client processes, and the one-GPU control;
       # about 3-4 minutes on 2 GPUs (less when the engine's kernels are already in Warp's cache)

@@ -29,6 +29,8 @@ from badf.protocol import (
     InfoRequest,
     KeySpace,
     Limits,
+    MeshReply,
+    MeshRequest,
     Message,
     MessageError,
     NotSupportedError,
@@ -432,6 +434,14 @@ class RemoteObject:
         info = self._ask(self._client.keys.object_info(self.name), InfoRequest(self.name), ObjectInfo, timeout)
         self._saw(info.frame)
         return info
+
+    def mesh(self, *, faces: bool = True, timeout: float | None = None) -> MeshReply:
+        """The object's newest applied vertices (N, 3) and their `frame`, and its faces (M, 3) when `faces`
+        (they change only when the object is re-registered: leave them out when polling). The arrays are
+        read-only views of the received message."""
+        reply = self._ask(self._client.keys.object_mesh(self.name), MeshRequest(self.name, faces), MeshReply, timeout)
+        self._saw(reply.frame)
+        return reply
 
     def reregister(self, *, worker: str | None = None, timeout: float | None = None) -> ObjectInfo:
         """Register the object again from what this handle kept: its faces, options and the last vertices it

@@ -8,6 +8,7 @@
     {ns}/obj/{name}/slice           queryable: SliceRequest -> SliceReply
     {ns}/obj/{name}/info            queryable: InfoRequest -> ObjectInfo
     {ns}/obj/{name}/delete          queryable: DeleteRequest -> Deleted
+    {ns}/obj/{name}/mesh            queryable: MeshRequest -> MeshReply (newest applied vertices, faces)
 
 A worker declares the object keys only for the objects it holds, so several workers can share a namespace
 and Zenoh routes each request to the object's owner. Every queryable may also answer with an ErrorReply.
@@ -82,6 +83,9 @@ class KeySpace:
 
     def object_delete(self, name: str) -> str:
         return self._object(name, "delete")
+
+    def object_mesh(self, name: str) -> str:
+        return self._object(name, "mesh")
 
     @property
     def every_object_info(self) -> str:

@@ -68,6 +68,8 @@ class MessageKind(IntEnum):
     DELETE_REQUEST = 11
     DELETED = 12
     ERROR = 13
+    MESH_REQUEST = 14
+    MESH_REPLY = 15
 
 
 # --- arrays: slots, named dimensions, canonical dtypes -------------------------------------------------
@@ -270,6 +272,15 @@ def _check_number(owner: str, name: str, value: object, *, positive: bool = Fals
     return float(value)
 
 
+def _check_face_indices(owner: str, faces: np.ndarray, vertex_count: int) -> None:
+    smallest, largest = int(faces.min()), int(faces.max())
+    if smallest < 0 or largest >= vertex_count:
+        bad = int(np.flatnonzero(((faces < 0) | (faces >= vertex_count)).any(axis=1))[0])
+        raise IndexRangeError(
+            f"{owner}.faces must index [0, {vertex_count}) (the vertex count); face {bad} is {faces[bad].tolist()}"
+        )
+
+
 def _set(message: object, name: str, value: object) -> None:
     object.__setattr__(message, name, value)
 
@@ -362,14 +373,7 @@ class RegisterRequest(_Message):
         _set(self, "frame", _check_int("RegisterRequest", "frame", self.frame))
         _set(self, "replace", _check_flag("RegisterRequest", "replace", self.replace))
         _canonical_arrays(self)
-        vertex_count = len(self.vertices)
-        smallest, largest = int(self.faces.min()), int(self.faces.max())
-        if smallest < 0 or largest >= vertex_count:
-            bad = int(np.flatnonzero(((self.faces < 0) | (self.faces >= vertex_count)).any(axis=1))[0])
-            raise IndexRangeError(
-                f"RegisterRequest.faces must index [0, {vertex_count}) (the vertex count); "
-                f"face {bad} is {self.faces[bad].tolist()}"
-            )
+        _check_face_indices("RegisterRequest", self.faces, len(self.vertices))
 
     def metadata(self) -> dict[str, Any]:
         return {"name": self.name, "frame": self.frame, "replace": self.replace, "options": self.options.to_json()}
@@ -679,6 +683,56 @@ class SliceReply(_Message):
 
 
 @dataclass(frozen=True)
+class MeshRequest(_Message):
+    """Ask for an object's newest applied vertices and, with `faces`, its faces (which never change: a viewer
+    that already has them asks with faces=False)."""
+
+    KIND: ClassVar[MessageKind] = MessageKind.MESH_REQUEST
+    name: str
+    faces: bool = True
+
+    def __post_init__(self) -> None:
+        check_name(self.name)
+        _set(self, "faces", _check_flag("MeshRequest", "faces", self.faces))
+
+    def metadata(self) -> dict[str, Any]:
+        return {"name": self.name, "faces": self.faces}
+
+    @classmethod
+    def from_parts(cls, fields: _Fields, arrays: dict[str, np.ndarray | None]) -> MeshRequest:
+        return cls(fields.text("name"), faces=fields.flag("faces"))
+
+
+@dataclass(frozen=True, eq=False)
+class MeshReply(_Message):
+    """The vertices of the newest applied frame (`frame`), and the faces when they were asked for."""
+
+    KIND: ClassVar[MessageKind] = MessageKind.MESH_REPLY
+    SLOTS: ClassVar[tuple[_Slot, ...]] = (
+        _Slot("vertices", "float", ("N", 3), finite=True),  # (N, 3) float32
+        _Slot("faces", "index", ("M", 3), optional=True),  # (M, 3) int32, each in [0, N)
+    )
+    name: str
+    frame: int
+    vertices: np.ndarray
+    faces: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        check_name(self.name)
+        _set(self, "frame", _check_int("MeshReply", "frame", self.frame))
+        _canonical_arrays(self)
+        if self.faces is not None:
+            _check_face_indices("MeshReply", self.faces, len(self.vertices))
+
+    def metadata(self) -> dict[str, Any]:
+        return {"name": self.name, "frame": self.frame}
+
+    @classmethod
+    def from_parts(cls, fields: _Fields, arrays: dict[str, np.ndarray | None]) -> MeshReply:
+        return cls(fields.text("name"), fields.integer("frame"), **arrays)  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
 class InfoRequest(_Message):
     """Ask for an object's info (`name`), or, on a wildcard or worker key, for every match (None)."""
 
@@ -812,11 +866,11 @@ class ErrorReply(_Message):
 
 Message = (
     RegisterRequest | ObjectInfo | Frame | FrameAck | QueryRequest | QueryReply | SliceRequest | SliceReply
-    | InfoRequest | WorkerInfo | DeleteRequest | Deleted | ErrorReply
+    | InfoRequest | WorkerInfo | DeleteRequest | Deleted | ErrorReply | MeshRequest | MeshReply
 )  # fmt: skip
 MESSAGE_TYPES: tuple[type[_Message], ...] = (
     RegisterRequest, ObjectInfo, Frame, FrameAck, QueryRequest, QueryReply, SliceRequest, SliceReply,
-    InfoRequest, WorkerInfo, DeleteRequest, Deleted, ErrorReply,
+    InfoRequest, WorkerInfo, DeleteRequest, Deleted, ErrorReply, MeshRequest, MeshReply,
 )  # fmt: skip
 _TYPES_BY_KIND: dict[int, type[_Message]] = {cls.KIND: cls for cls in MESSAGE_TYPES}
 M = TypeVar("M", bound=_Message)

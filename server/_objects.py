@@ -4,7 +4,8 @@ Zenoh callbacks only check sizes and hand work over: a streamed or blocking fram
 frame (the replaced one is counted as dropped), other requests join a bounded queue. The object's thread
 alternates between applying the pending frame and answering one waiting request, so queries always see a
 fully applied frame, a stream cannot starve queries, and a slow object delays only its own requests.
-Info requests are answered at once: the frame and counters are current; the engine's own info and stats
+Info and mesh requests are answered at once: the frame, counters and newest applied vertices are current
+(the object keeps a reference to them; the engine is not asked); the engine's own info and stats
 are a snapshot the object's thread refreshes at most every 0.25 s (on a GPU, reading the engine's stage
 timers synchronises the device, which would stall other objects if it happened on every frame).
 """
@@ -32,6 +33,8 @@ from badf.protocol import (
     InfoRequest,
     KeySpace,
     Limits,
+    MeshReply,
+    MeshRequest,
     MetadataError,
     NotSupportedError,
     ObjectInfo,
@@ -105,6 +108,8 @@ class ServedObject:
         field: DistanceFieldLike,
         options: ObjectOptions,
         *,
+        vertices: np.ndarray,
+        faces: np.ndarray,
         frame: int,
         worker_id: str,
         keys: KeySpace,
@@ -119,6 +124,8 @@ class ServedObject:
         self._face_count = field.face_count
         self._options = options
         self._frame = frame
+        self._vertices = vertices  # of the newest applied frame, for mesh requests
+        self._faces = faces
         self._keys = keys
         self._limits = limits
         self._max_waiting = max_waiting_requests
@@ -149,6 +156,7 @@ class ServedObject:
             session.declare_queryable(self._keys.object_slice(self.name), self._on_slice),
             session.declare_queryable(self._keys.object_info(self.name), self._on_info),
             session.declare_queryable(self._keys.object_delete(self.name), self._on_delete),
+            session.declare_queryable(self._keys.object_mesh(self.name), self._on_mesh),
         ]
 
     def close(self, reason: BadfError) -> None:
@@ -261,6 +269,16 @@ class ServedObject:
             self._check_addressed_to_me(request.name)
         return self.info()
 
+    def _on_mesh(self, query: zenoh.Query) -> None:
+        answer(query, self._keys.object_mesh(self.name), lambda: self._mesh_for(query))
+
+    def _mesh_for(self, query: zenoh.Query) -> MeshReply:
+        request = decode(request_bytes(query.payload, self._limits), MeshRequest, limits=self._limits)
+        self._check_addressed_to_me(request.name)
+        with self._lock:
+            frame, vertices, faces = self._frame, self._vertices, self._faces
+        return MeshReply(self.name, frame, vertices, faces if request.faces else None)
+
     def _enqueue_query(self, run: Callable[[zenoh.Query], None], query: zenoh.Query) -> None:
         self._enqueue(_Request(lambda: run(query), lambda error: refuse(query, error)))
 
@@ -336,7 +354,7 @@ class ServedObject:
         with engine_errors():
             self._field.update(frame.vertices)
         with self._lock:
-            self._frame = frame.frame
+            self._frame, self._vertices = frame.frame, frame.vertices
             self._counters.frames_applied += 1
         self._refresh_snapshot()
         return FrameAck(self.name, frame.frame)
@@ -399,7 +417,9 @@ class ServedObject:
         log.info("deleted %r at frame %d", self.name, self._frame)
         return Deleted(self.name, self._frame)
 
-    def swap(self, field: DistanceFieldLike, options: ObjectOptions, frame: int) -> ObjectInfo:
+    def swap(
+        self, field: DistanceFieldLike, options: ObjectOptions, frame: int, vertices: np.ndarray, faces: np.ndarray
+    ) -> ObjectInfo:
         """Replace the field (a re-registration), on the object's thread after the requests waiting before
         it; blocks until done. A frame still pending for the old topology is dropped."""
         done = threading.Event()
@@ -408,6 +428,7 @@ class ServedObject:
         def run() -> None:
             with self._lock:
                 self._field, self._options, self._frame = field, options, frame
+                self._vertices, self._faces = vertices, faces
                 self._vertex_count, self._face_count = field.vertex_count, field.face_count
                 self._counters = Counters()
                 self._last_error = None

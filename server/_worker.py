@@ -217,12 +217,14 @@ class Worker:
             built = self._build_field(request.vertices, request.faces, request.options)
         build_ms = (time.perf_counter() - started) * 1000
         if existing is not None:
-            info = existing.swap(built, request.options, request.frame)
+            info = existing.swap(built, request.options, request.frame, request.vertices, request.faces)
         else:
             served = ServedObject(
                 request.name,
                 built,
                 request.options,
+                vertices=request.vertices,
+                faces=request.faces,
                 frame=request.frame,
                 worker_id=self.worker_id,
                 keys=self._keys,

@@ -31,6 +31,8 @@ from badf.protocol import (
     LimitExceededError,
     Limits,
     MalformedMessageError,
+    MeshReply,
+    MeshRequest,
     MessageError,
     MessageKind,
     MetadataError,
@@ -115,6 +117,8 @@ def samples() -> dict[type, object]:
         DeleteRequest: DeleteRequest("bunny"),
         Deleted: Deleted("bunny", 7),
         ErrorReply: ErrorReply(int(ErrorCode.NOT_FOUND), "no object 'bunny'"),
+        MeshRequest: MeshRequest("bunny", faces=False),
+        MeshReply: MeshReply("bunny", 7, VERTICES, FACES),
     }
 
 
@@ -143,6 +147,7 @@ def test_optional_arrays_round_trip_absent() -> None:
     assert decode(encode(slice_reply), SliceReply).cell_boxes is None
     assert decode(encode(InfoRequest()), InfoRequest).name is None
     assert decode(encode(SliceRequest("a", "z", 0.0)), SliceRequest).levels is None
+    assert decode(encode(MeshReply("a", 3, VERTICES)), MeshReply).faces is None
 
 
 def test_inputs_are_canonicalised() -> None:
@@ -248,7 +253,11 @@ def test_wrong_shapes() -> None:
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_non_finite_coordinates(bad: float) -> None:
-    for cls, message in ((Frame, Frame("a", 1, VERTICES)), (QueryRequest, QueryRequest("a", POINTS))):
+    for cls, message in (
+        (Frame, Frame("a", 1, VERTICES)),
+        (QueryRequest, QueryRequest("a", POINTS)),
+        (MeshReply, MeshReply("a", 1, VERTICES)),
+    ):
         data = bytearray(encode(message))
         struct.pack_into("<f", data, len(data) - 4, bad)  # the last coordinate of the last row
         with pytest.raises(NonFiniteError, match="row"):
@@ -260,13 +269,19 @@ def test_non_finite_coordinates(bad: float) -> None:
 
 
 def test_face_index_out_of_range() -> None:
-    data = bytearray(encode(RegisterRequest("a", VERTICES, FACES)))
-    struct.pack_into("<i", data, len(data) - 4, len(VERTICES))  # last index of the last face
-    with pytest.raises(IndexRangeError, match="face 19"):
-        decode(data, RegisterRequest)
-    struct.pack_into("<i", data, len(data) - 4, -1)
-    with pytest.raises(IndexRangeError):
-        decode(data, RegisterRequest)
+    for cls, message in (
+        (RegisterRequest, RegisterRequest("a", VERTICES, FACES)),
+        (MeshReply, MeshReply("a", 1, VERTICES, FACES)),
+    ):
+        data = bytearray(encode(message))
+        struct.pack_into("<i", data, len(data) - 4, len(VERTICES))  # last index of the last face
+        with pytest.raises(IndexRangeError, match="face 19"):
+            decode(data, cls)
+        struct.pack_into("<i", data, len(data) - 4, -1)
+        with pytest.raises(IndexRangeError):
+            decode(data, cls)
+    with pytest.raises(IndexRangeError, match="MeshReply.faces"):
+        MeshReply("a", 1, VERTICES[:5], FACES)
     too_big = FACES.astype(np.int64)
     too_big[0, 0] = 2**40
     with pytest.raises(IndexRangeError, match="int32"):
@@ -358,6 +373,12 @@ def test_bad_metadata() -> None:
         SliceRequest("a", "w", 0.0)
     with pytest.raises(InvalidOptionError):
         SliceRequest("a", "x", 0.0, levels=(4, 2))
+    with pytest.raises(MetadataError):
+        decode(pack(MessageKind.MESH_REQUEST, {"name": "a", "faces": "yes"}, []), MeshRequest)
+    with pytest.raises(MetadataError):
+        decode(pack(MessageKind.MESH_REPLY, {"name": "a"}, [VERTICES, None]), MeshReply)  # frame missing
+    with pytest.raises(InvalidOptionError):
+        MeshRequest("a", faces=1)
 
 
 def test_key_space() -> None:

@@ -27,6 +27,7 @@ from badf.protocol import (
     LimitExceededError,
     Limits,
     MalformedMessageError,
+    MeshRequest,
     MetadataError,
     NonFiniteError,
     NotSupportedError,
@@ -279,6 +280,34 @@ def test_slices_pass_through(worker: ThreadWorker, client: Client) -> None:
     np.testing.assert_allclose(cut.cell_boxes[:, 1, 0], [0.25, 0.125, 0.0625])
     bare = obj.slice("x", 0.0, resolution=4, cells=False)
     assert bare.cell_boxes is None and bare.cell_levels is None and bare.cell_flags is None
+
+
+def test_mesh_follows_the_applied_frame(worker: ThreadWorker, client: Client, raw: zenoh.Session) -> None:
+    obj = client.register("blob", VERTICES, FACES, frame=3)
+    first = obj.mesh()
+    assert first.frame == 3
+    np.testing.assert_array_equal(first.vertices, VERTICES)
+    np.testing.assert_array_equal(first.faces, FACES)
+    worker.fields[0].gate.clear()
+    obj.stream(VERTICES + 1)  # frame 4: taken by the object's thread, held at the gate
+    assert worker.fields[0].updates_started.acquire(timeout=20)
+    held = obj.mesh(faces=False)  # answered at once, with the frame applied before
+    assert held.frame == 3 and held.faces is None
+    np.testing.assert_array_equal(held.vertices, VERTICES)
+    worker.fields[0].gate.set()
+    wait_until(lambda: obj.mesh(faces=False).frame == 4, what="the mesh of frame 4")
+    np.testing.assert_array_equal(obj.mesh(faces=False).vertices, VERTICES + 1)
+    replaced = client.register("blob", VERTICES[:20], FACES[:2], replace=True, frame=0)
+    after = replaced.mesh()
+    assert after.frame == 0 and after.vertices.shape == (20, 3)
+    np.testing.assert_array_equal(after.faces, FACES[:2])
+    error = raw_error(raw, KEYS.object_mesh("blob"), encode(MeshRequest("other")))
+    assert isinstance(error, MetadataError)
+    error = raw_error(raw, KEYS.object_mesh("blob"), encode(InfoRequest("blob")))
+    assert isinstance(error, WrongKindError)
+    replaced.delete()
+    with pytest.raises(ObjectNotFoundError):
+        replaced.mesh()
 
 
 def test_client_checks_before_sending(client: Client) -> None:

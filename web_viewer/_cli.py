@@ -1,0 +1,73 @@
+"""`badf view`: the web viewer on the workers' objects, at http://127.0.0.1:8080/ by default."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+
+from badf.protocol import DEFAULT_ENDPOINT, BadfError
+from badf.web_viewer._process import exit_now
+from badf.web_viewer._viewer import RESOLUTIONS, UP_DIRECTIONS, Viewer, ViewerSettings
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--connect", default=DEFAULT_ENDPOINT, metavar="ENDPOINT",
+        help=f"Zenoh endpoint of the workers' router (default: {DEFAULT_ENDPOINT})",
+    )  # fmt: skip
+    parser.add_argument("--port", type=int, default=8080, help="port of the web page (default: 8080; 0: any free)")
+    parser.add_argument(
+        "--host", default="127.0.0.1", help="address the web page listens on (default: 127.0.0.1; 0.0.0.0: all)"
+    )
+    parser.add_argument("--namespace", default="badf", help="the workers' key-expression prefix (default: badf)")
+    parser.add_argument("--config", default=None, metavar="FILE", help="Zenoh JSON5 config file (TLS, authentication)")
+    parser.add_argument("--object", default=None, metavar="NAME", help="object to show first (default: the first)")
+    parser.add_argument(
+        "--resolution", type=int, default=256, choices=RESOLUTIONS, help="slice grid, per side (default: 256)"
+    )
+    parser.add_argument("--up", default="+y", choices=UP_DIRECTIONS, help="the world's up direction (default: +y)")
+    parser.add_argument("--max-slice-hz", type=float, default=20.0, help="most slices asked for per second")
+    parser.add_argument("--max-mesh-hz", type=float, default=10.0, help="most mesh fetches per second")
+    parser.add_argument("--max-info-hz", type=float, default=20.0, help="most info polls (frame, stats) per second")
+    parser.add_argument("--timeout", type=float, default=10.0, metavar="SECONDS", help="longest wait for a worker")
+
+
+def settings_from(args: argparse.Namespace) -> ViewerSettings:
+    return ViewerSettings(
+        connect=args.connect,
+        namespace=args.namespace,
+        config_file=args.config,
+        host=args.host,
+        port=args.port,
+        object_name=args.object,
+        resolution=args.resolution,
+        up=args.up,
+        max_slice_hz=args.max_slice_hz,
+        max_mesh_hz=args.max_mesh_hz,
+        max_info_hz=args.max_info_hz,
+        timeout_s=args.timeout,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    if not logging.getLogger().handlers:
+        logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(asctime)s badf %(levelname)s %(message)s")
+        logging.getLogger("websockets").setLevel(logging.WARNING)  # viser's web server: no line per start and stop
+    stop = threading.Event()  # set by SIGINT or SIGTERM, also one that comes while the viewer starts
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda _number, _frame: stop.set())
+    try:
+        settings = settings_from(args)
+        viewer = Viewer(settings)
+    except (BadfError, ValueError, ImportError) as error:
+        print(f"badf view: {error}", file=sys.stderr)
+        return 2
+    with viewer:
+        print(f"badf view: open {viewer.url} (workers at {settings.connect}); Ctrl-C stops", file=sys.stderr)
+        while not stop.wait(1.0):
+            pass
+    exit_now(0)
+    return 0  # not reached
