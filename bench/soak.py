@@ -271,9 +271,12 @@ class SoakReport:
 
 def run_soak(settings: SoakSettings, *, log=print) -> SoakReport:
     """Start a worker and the clients, run, collect; the worker and clients are ended whatever happens."""
+    import warp as wp
+
     from badf.client import Client
     from badf.server import WorkerSettings, end_process, worker_process
 
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)  # the device's name is read for the report
     endpoint = _free_endpoint()
     worker_settings = WorkerSettings(
         worker_id="soak", listen=(endpoint,), device=settings.device, stats_interval_s=max(5.0, settings.seconds / 6)
@@ -307,6 +310,7 @@ def run_soak(settings: SoakSettings, *, log=print) -> SoakReport:
                 tallies = _collect(results, clients, deadline=started + settings.seconds + settings.start_timeout_s)
                 seconds_run = time.monotonic() - started
                 rss_end = sampler.latest()
+                rss_max = max(sampler.max_after_warm_up(), rss_end)
                 device_end = _device_bytes(monitor)
                 for info in monitor.objects():
                     monitor.object(info.name).delete()
@@ -317,7 +321,7 @@ def run_soak(settings: SoakSettings, *, log=print) -> SoakReport:
     return _report(
         settings, tallies, seconds_run,
         rss={"registered": rss_registered, "warm_up_end": rss_warm,
-             "max_after_warm_up": sampler.max_after_warm_up(), "end": rss_end},
+             "max_after_warm_up": rss_max, "end": rss_end},
         device_bytes={"warm_up_end": device_warm, "end": device_end},
         worker_exit_code=worker.exitcode,
     )  # fmt: skip
@@ -391,8 +395,7 @@ class _RssSampler:
         self._warm_up_index = len(self._samples)
 
     def max_after_warm_up(self) -> float:
-        after = self._samples[self._warm_up_index or 0 :]
-        return max(after) if after else self._samples[-1]
+        return max(self._samples[self._warm_up_index or 0 :] + [self.latest()])
 
 
 def _report(
