@@ -302,7 +302,7 @@ def run_soak(settings: SoakSettings, *, log=print) -> SoakReport:
                     raise RuntimeError(f"the soak did not start: {reasons or 'a client did not register in time'}")
                 started = time.monotonic()
                 rss_registered = sampler.latest()
-                log(f"soak: {settings.clients} clients x {settings.objects_per_client} objects for {settings.seconds:g} s")
+                log(f"soak: {settings.clients} clients x {settings.objects_per_client} objects, {settings.seconds:g} s")
                 _wait(started + settings.warm_up, clients)
                 rss_warm = sampler.latest()
                 sampler.mark_warm_up_end()
@@ -417,11 +417,11 @@ def _report(
     for tally in tallies:
         del tally["round_trip_ms"]  # kept only as percentiles
     return SoakReport(
-        settings=asdict(settings), device=bench_device_name(settings.device), seconds_run=round(seconds_run, 2), clients=tallies,
-        totals=dict(totals), errors=dict(errors), wrong_answers=wrong, final_failures=failures,
+        settings=asdict(settings), device=bench_device_name(settings.device), seconds_run=round(seconds_run, 2),
+        clients=tallies, totals=dict(totals), errors=dict(errors), wrong_answers=wrong, final_failures=failures,
         rss_mib={key: round(value, 1) for key, value in rss.items()}, device_bytes=device_bytes,
-        round_trip_ms={"median": round(float(np.median(samples)), 2), "p99": round(float(np.percentile(samples, 99)), 2),
-                       "max": round(float(samples.max()), 2)},
+        round_trip_ms={"median": round(float(np.median(samples)), 2),
+                       "p99": round(float(np.percentile(samples, 99)), 2), "max": round(float(samples.max()), 2)},
         worker_exit_code=worker_exit_code, date=timestamp(), host=platform.node(),
     )  # fmt: skip
 
@@ -465,14 +465,16 @@ def run(args: argparse.Namespace) -> int:
 
 def print_summary(report: SoakReport) -> None:
     s, t = report.settings, report.totals
+    rt = report.round_trip_ms
     rows = [
         ["clients x objects", f"{s['clients']} x {s['objects_per_client']}"],
         ["seconds run (warm-up)", f"{report.seconds_run} ({s['warm_up_s'] or max(5.0, s['seconds'] / 4):g})"],
         ["updates acknowledged", t.get("updates_acknowledged", 0)],
         ["frames streamed", t.get("frames_streamed", 0)],
-        ["queries exact / adf / peer", f"{t.get('exact_queries', 0)} / {t.get('adf_queries', 0)} / {t.get('peer_queries', 0)}"],
+        ["queries exact / adf / peer", f"{t.get('exact_queries', 0)} / {t.get('adf_queries', 0)} / "
+                                       f"{t.get('peer_queries', 0)}"],
         ["slices / infos", f"{t.get('slices', 0)} / {t.get('infos', 0)}"],
-        ["round trip ms median / p99 / max", f"{report.round_trip_ms['median']} / {report.round_trip_ms['p99']} / {report.round_trip_ms['max']}"],
+        ["round trip ms median / p99 / max", f"{rt['median']} / {rt['p99']} / {rt['max']}"],
         ["error replies", sum(report.errors.values())],
         ["wrong answers", len(report.wrong_answers)],
         ["final check failures", len(report.final_failures)],
