@@ -8,7 +8,10 @@ import importlib
 _BENCHMARKS = {
     "engine": ("badf.bench.engine", "per-stage build/update times, memory, and the dense-grid baseline"),
     "service": ("badf.bench.service", "frame + query round trip and query throughput, service beside in-process"),
-    "soak": ("badf.bench.soak", "many clients x objects streaming and querying for a bounded time; answers and memory checked"),
+    "accuracy": ("badf.bench.accuracy", "error against run time (ADF depths, exact, dense grid, CPU peers) and the "
+                 "stability table"),
+    "soak": ("badf.bench.soak", "clients x objects streaming and querying for a bounded time; answers and memory "
+             "checked"),
 }
 
 

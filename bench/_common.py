@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime
+import os
 import pathlib
 
 import numpy as np
@@ -15,6 +16,28 @@ def load_npz(path: str | pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
     if vertices.ndim == 3:
         vertices = vertices[0]
     return np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(data["faces"], np.int32)
+
+
+# The repository's root when running from a checkout (an editable install).
+REPOSITORY = pathlib.Path(__file__).resolve().parents[1]
+
+
+def mesh_folders() -> list[pathlib.Path]:
+    """Where named meshes are looked for: $BADF_SHARED_DATA, the bundled test data, the shared folder beside
+    the checkout."""
+    folders = [REPOSITORY / "tests" / "data", REPOSITORY.parent / "shared" / "data"]
+    if os.environ.get("BADF_SHARED_DATA"):
+        folders.insert(0, pathlib.Path(os.environ["BADF_SHARED_DATA"]))
+    return folders
+
+
+def find_mesh(name: str) -> pathlib.Path:
+    """The .npz of a named mesh (e.g. "stanford-bunny"); FileNotFoundError naming the folders searched."""
+    for folder in mesh_folders():
+        path = folder / f"{name}.npz"
+        if path.exists():
+            return path
+    raise FileNotFoundError(f"{name}.npz is in none of {', '.join(map(str, mesh_folders()))}")
 
 
 def deform(vertices: np.ndarray, t: float, amplitude: float = 0.01) -> np.ndarray:

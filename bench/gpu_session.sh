@@ -13,7 +13,7 @@ for step in "$@"; do
   echo "=== $step"
   case "$step" in
     tests)
-      python3 -m pytest -q -p no:cacheprovider -k cuda tests/test_engine.py tests/test_engine_inputs.py \
+      python3 -m pytest -q -p no:cacheprovider -k cuda tests/test_engine.py tests/test_engine_inputs.py tests/test_stability.py \
         2>&1 | tee "$out/pytest-cuda.log" | tail -25 ;;
     engine)
       python3 -m badf.bench.engine --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --out "$out/engine-bunny.json" \
@@ -21,6 +21,10 @@ for step in "$@"; do
     service)
       python3 -m badf.bench.service --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --out "$out/service-bunny.json" \
         2>&1 | tee "$out/service-bunny.log" ;;
+    accuracy)
+      # error against run time on every mesh (depths 5-9, dense grid to depth 9) and the stability table;
+      # writes accuracy-<gpu>.md, two PNGs and results/accuracy-<gpu>.json under $OUT
+      python3 -m badf.bench.accuracy --out-dir "$out" --workers "$(nproc)" 2>&1 | tee "$out/accuracy.log" | tail -45 ;;
     *)
       echo "unknown step $step" ;;
   esac

@@ -191,7 +191,7 @@ def test_adf_error_near_the_surface_is_below_one_finest_cell(device, name):
     surface = surface[rng.choice(len(surface), 600)]
     direction = rng.normal(size=surface.shape)
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    points = surface + direction * rng.random((len(surface), 1)) * 2.0 * cell
+    points = surface + direction * rng.random((len(surface), 1)) * cell
     truth = oracle.signed_distance(points, vertices, faces)
     result = field.query(points, mode="adf", outputs=("distance", "normal"))
     assert np.abs(result.distance - truth).max() < tol.ADF_NEAR_SURFACE * cell

@@ -157,7 +157,7 @@ class DistanceField:
         self._halo = check_halo(halo)
         self._device = _resolve_device(device)
 
-        lo, hi = v.min(axis=0), v.max(axis=0)
+        lo, hi = bounds(v)
         self._domain = _Domain.fit(lo, hi)
         local = self._domain.to_local(v)
         self._topology = analyse_topology(f, v)
@@ -184,7 +184,7 @@ class DistanceField:
         self._corners = CornerField(b)
         self._points = PointQuery(b)
         self._slice_cells = SliceCells(b)
-        self._apply(local, domain_moved=True)
+        self._apply(local, float(np.max(hi - lo)), domain_moved=True)
 
     # -- public API -----------------------------------------------------------------------------------
     def update(self, vertices) -> int:
@@ -193,12 +193,12 @@ class DistanceField:
         Raises InvalidInputError (and keeps the last good frame) on a wrong shape or non-finite value.
         """
         v = as_vertices(vertices, expected_count=self._vertex_count)
-        lo, hi = v.min(axis=0), v.max(axis=0)
+        lo, hi = bounds(v)
         moved = not self._domain.holds(lo, hi)
         if moved:
             self._domain = _Domain.fit(lo, hi, previous=self._domain)
             self._counters.domain_moves += 1
-        self._apply(self._domain.to_local(v), domain_moved=moved)
+        self._apply(self._domain.to_local(v), float(np.max(hi - lo)), domain_moved=moved)
         self._frame += 1
         self._counters.updates += 1
         return self._frame
@@ -351,7 +351,7 @@ class DistanceField:
         }
 
     # -- the pipeline ---------------------------------------------------------------------------------
-    def _apply(self, local_vertices: np.ndarray, *, domain_moved: bool) -> None:
+    def _apply(self, local_vertices: np.ndarray, extent: float, *, domain_moved: bool) -> None:
         """Upload a frame and rebuild the field: refit (or rebuild, when the domain moved), sign data,
         octree, corners, corner distances."""
         wall = time.perf_counter()
@@ -368,7 +368,6 @@ class DistanceField:
                 self._bvh.refit(self._vertices, self._faces)
             with clock.stage("normals"):
                 self._normals.update(self._vertices)
-                extent = float(np.max(local_vertices.max(axis=0) - local_vertices.min(axis=0)))
                 self._normals.choose_frame_method(self._octree.host, extent)
             self._octree.build(self._vertices, self._faces, self._face_count, origin, side, clock)
             with clock.stage("distances"):
@@ -394,6 +393,13 @@ class DistanceField:
         keys = self._octree.node_keys.numpy()[: self._octree.node_count]
         levels = (keys >> 32).astype(np.int64)
         return levels, _decode_morton(keys & 0xFFFFFFFF).astype(np.int64)
+
+
+def bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-axis (min, max) of (N, 3) points. numpy reduces axis 0 of an (N, 3) array row by row (2 ms for
+    35K points); a transposed copy reduced along its rows takes 0.05 ms."""
+    columns = np.ascontiguousarray(points.T)
+    return columns.min(axis=1), columns.max(axis=1)
 
 
 def _decode_morton(codes: np.ndarray) -> np.ndarray:
