@@ -1,5 +1,6 @@
 """Hostile input at a real worker (a spawned process, CPU back-end): broken messages on every key it
-answers, and meshes that are valid but nasty (degenerate, extreme in scale, collapsing frames).
+answers, and meshes that are valid but nasty (the engine's stability cases of bench/_cases.py that are
+meshes, and four only a service meets), each then sent five nasty frames (collapsed, scaled, moved away).
 
 Held for every broken request: exactly one reply; when the request does not decode, the error code the
 protocol's own decoder gives for those bytes (so the worker reports the same specific error as `decode`);
@@ -13,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 
-import meshes
 import numpy as np
 import pytest
 import zenoh
@@ -22,6 +22,7 @@ from hostile_messages import MESSAGES, MUTATIONS, Parts, object_options
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
+from badf.bench import _cases as cases
 from badf.bench.soak import PROBE, cube, expected_probe_distance, frame_vertices
 from badf.client import Client
 from badf.protocol import (
@@ -221,73 +222,38 @@ def test_broken_streamed_frames_change_nothing_they_should_not(target, raw: zeno
 # --- valid but nasty meshes --------------------------------------------------------------------------
 
 
-def icosphere() -> tuple[np.ndarray, np.ndarray]:
-    return meshes.sphere()
+def every_face_on_one_vertex():
+    return np.zeros((3, 3)), np.array([[0, 0, 0], [1, 1, 1], [0, 1, 2]])
 
 
-def zero_area_and_collinear():
-    v, f = icosphere()
-    repeated = np.stack([f[:20, 0], f[:20, 0], f[:20, 1]], axis=1)
-    midpoints = (v[f[20:40, 0]] + v[f[20:40, 1]]) / 2
-    collinear = np.stack([f[20:40, 0], f[20:40, 1], len(v) + np.arange(20)], axis=1)
-    return np.concatenate([v, midpoints]), np.concatenate([f, repeated, collinear])
-
-
-def triangle_soup():
-    v, f = icosphere()
-    return v[f].reshape(-1, 3), np.arange(3 * len(f)).reshape(-1, 3)
-
-
-def slivers(count: int = 500, width: float = 1e-6):
-    xs = np.concatenate([[0.0], 0.5 + width * np.arange(count + 1), [1.0]])
-    base = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
-    apex_y, apex_z = len(base), len(base) + 1
-    i = np.arange(len(base) - 1)
-    faces = np.concatenate([
-        np.stack([i, np.full_like(i, apex_y), i + 1], 1), np.stack([i, i + 1, np.full_like(i, apex_z)], 1),
-        [[0, apex_z, apex_y], [len(base) - 1, apex_y, apex_z]],
-    ])  # fmt: skip
-    return np.concatenate([base, [[0, 1, 0], [0, 0, 1]]]), faces
-
-
-def two_cubes_sharing_an_edge():
-    v, f = cube(2)
-    return np.concatenate([v, v + 1.0 * np.array([1, 1, 0])]), np.concatenate([f, f + len(v)])
+def every_vertex_at_one_point():
+    return np.ones((12, 3)), cases.icosphere(1)[1] % 12
 
 
 def with_far_unreferenced_vertices():
-    v, f = icosphere()
-    return np.concatenate([v, [[1e6, 0, 0], [-1e6, 0, 0]]]), f
+    vertices, faces = cases.icosphere()
+    return np.concatenate([vertices, [[1e6, 0, 0], [-1e6, 0, 0]]]), faces
 
 
-def scaled(factor: float, offset: float = 0.0):
-    def make():
-        v, f = icosphere()
-        return v * factor + offset, f
-
-    return make
-
-
+# The engine's stability cases (bench/_cases.py) that are meshes, and four more only a service meets.
 NASTY_MESHES = {
-    "zero-area and collinear faces": zero_area_and_collinear,
-    "triangle soup (repeated vertices)": triangle_soup,
-    "slivers of aspect ratio 1e6": slivers,
-    "a single triangle": meshes.single_triangle,
-    "a flat sheet (no extent in z)": lambda: (meshes.sheet()[0] * np.array([1, 1, 0], np.float32), meshes.sheet()[1]),
-    "a plate 1e-4 thick": lambda: (cube(2)[0] * np.array([1, 1, 1e-4], np.float32), cube(2)[1]),
-    "inverted winding": lambda: (icosphere()[0], icosphere()[1][:, ::-1]),
-    "faces repeated in the opposite orientation": (
-        lambda: (icosphere()[0], np.concatenate([icosphere()[1], icosphere()[1][:40, ::-1]]))
-    ),
-    "two cubes sharing an edge (non-manifold)": two_cubes_sharing_an_edge,
-    "every face on one vertex": lambda: (np.zeros((3, 3), np.float32), np.array([[0, 0, 0], [1, 1, 1], [0, 1, 2]])),
-    "every vertex at one point": lambda: (np.ones((12, 3), np.float32), icosphere()[1][:20] % 12),
+    "zero-area and collinear triangles": cases.zero_area_and_collinear,
+    "repeated vertices (triangle soup)": cases.triangle_soup,
+    "slivers of aspect ratio 1e6": cases.sliver_tetrahedron,
+    "a single triangle": cases.single_triangle,
+    "flat (coplanar) open mesh": cases.flat_sheet,
+    "thin plate 1e-4 of its size thick": cases.thin_plate,
+    "inverted winding": cases.inverted_sphere,
+    "duplicate faces of opposite orientation": cases.sphere_with_opposite_duplicates,
+    "non-manifold edges (two cubes sharing an edge)": cases.boxes_sharing_an_edge,
+    "offset by 1e5": cases.scaled_sphere(1.0, 1e5),
+    "scaled by 1e-5": cases.scaled_sphere(1e-5, 0.0),
+    "scaled by 1e5": cases.scaled_sphere(1e5, 0.0),
+    "scaled by 1e15": cases.scaled_sphere(1e15, 0.0),
+    "every face on one vertex": every_face_on_one_vertex,
+    "every vertex at one point": every_vertex_at_one_point,
     "unreferenced vertices 1e6 away": with_far_unreferenced_vertices,
-    "scaled by 1e-5": scaled(1e-5),
-    "scaled by 1e5": scaled(1e5),
-    "offset by 1e5": scaled(1.0, 1e5),
-    "scaled by 1e15": scaled(1e15),
-}  # fmt: skip
+}
 
 
 def nasty_frames(vertices: np.ndarray) -> dict[str, np.ndarray]:
