@@ -13,9 +13,9 @@ right after the acknowledgement of F must name F (nobody else writes that object
 checks its objects' counters: the last acknowledged frame is the one applied, every frame it sent was
 applied or dropped as stale (latest wins), none was rejected.
 
-The worker's resident memory (VmRSS from /proc) is sampled every half second, and the engine's device
-bytes (object info, field_stats["device_bytes"], summed over the objects) are read at the end of the
-warm-up and at the end. Bounded: `--seconds`, `--max-rounds` per client, and a deadline for the whole run.
+The worker's resident memory (VmRSS from /proc) is sampled every half second; the engine's device bytes
+(object info, field_stats["device_bytes"], summed over the objects) and, on a GPU, the worker's GPU memory
+as nvidia-smi reports it are read at the end of the warm-up and at the end. Bounded: `--seconds`, `--max-rounds` per client, and a deadline for the whole run.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import json
 import multiprocessing
 import platform
 import socket
+import subprocess
 import threading
 import time
 from collections import Counter
@@ -255,6 +256,7 @@ class SoakReport:
     final_failures: list[str]
     rss_mib: dict[str, float]  # worker VmRSS: after registration, at the end of the warm-up, max after it, end
     device_bytes: dict[str, int]  # engine device bytes summed over the objects: end of warm-up, end
+    gpu_memory_mib: dict[str, float | None]  # the worker's GPU memory as nvidia-smi sees it (None: no GPU)
     round_trip_ms: dict[str, float]  # update + exact query: median, p99, max
     worker_exit_code: int | None = None
     date: str = ""
@@ -307,11 +309,13 @@ def run_soak(settings: SoakSettings, *, log=print) -> SoakReport:
                 rss_warm = sampler.latest()
                 sampler.mark_warm_up_end()
                 device_warm = _device_bytes(monitor)
+                gpu_warm = _gpu_memory_mib(worker.pid)
                 tallies = _collect(results, clients, deadline=started + settings.seconds + settings.start_timeout_s)
                 seconds_run = time.monotonic() - started
                 rss_end = sampler.latest()
                 rss_max = max(sampler.max_after_warm_up(), rss_end)
                 device_end = _device_bytes(monitor)
+                gpu_end = _gpu_memory_mib(worker.pid)
                 for info in monitor.objects():
                     monitor.object(info.name).delete()
         finally:
@@ -323,6 +327,7 @@ def run_soak(settings: SoakSettings, *, log=print) -> SoakReport:
         rss={"registered": rss_registered, "warm_up_end": rss_warm,
              "max_after_warm_up": rss_max, "end": rss_end},
         device_bytes={"warm_up_end": device_warm, "end": device_end},
+        gpu_memory_mib={"warm_up_end": gpu_warm, "end": gpu_end},
         worker_exit_code=worker.exitcode,
     )  # fmt: skip
 
@@ -347,6 +352,22 @@ def _collect(results, clients: list, *, deadline: float) -> list[dict]:
             if not any(process.is_alive() for process in clients) and results.empty():
                 raise RuntimeError(f"{len(clients) - len(tallies)} soak clients exited without a report") from None
     return sorted(tallies, key=lambda tally: tally["client"])
+
+
+def _gpu_memory_mib(pid: int) -> float | None:
+    """The GPU memory nvidia-smi reports for process `pid` (MiB), or None without nvidia-smi or a GPU."""
+    try:
+        listing = subprocess.run(
+            ["nvidia-smi", "--query-compute-apps=pid,used_memory", "--format=csv,noheader,nounits"],
+            capture_output=True, text=True, timeout=30, check=True,
+        ).stdout  # fmt: skip
+    except (OSError, subprocess.SubprocessError):
+        return None
+    for line in listing.splitlines():
+        fields = [field.strip() for field in line.split(",")]
+        if len(fields) == 2 and fields[0] == str(pid):
+            return float(fields[1])
+    return None
 
 
 def _device_bytes(monitor) -> int:
@@ -399,7 +420,8 @@ class _RssSampler:
 
 
 def _report(
-    settings: SoakSettings, tallies: list[dict], seconds_run: float, *, rss, device_bytes, worker_exit_code
+    settings: SoakSettings, tallies: list[dict], seconds_run: float, *, rss, device_bytes, gpu_memory_mib,
+    worker_exit_code,
 ) -> SoakReport:
     totals: Counter = Counter()
     errors: Counter = Counter()
@@ -420,6 +442,7 @@ def _report(
         settings=asdict(settings), device=bench_device_name(settings.device), seconds_run=round(seconds_run, 2),
         clients=tallies, totals=dict(totals), errors=dict(errors), wrong_answers=wrong, final_failures=failures,
         rss_mib={key: round(value, 1) for key, value in rss.items()}, device_bytes=device_bytes,
+        gpu_memory_mib=gpu_memory_mib,
         round_trip_ms={"median": round(float(np.median(samples)), 2),
                        "p99": round(float(np.percentile(samples, 99)), 2), "max": round(float(samples.max()), 2)},
         worker_exit_code=worker_exit_code, date=timestamp(), host=platform.node(),
@@ -481,6 +504,7 @@ def print_summary(report: SoakReport) -> None:
         ["worker RSS MiB registered / warm / max after / end",
          " / ".join(str(report.rss_mib[k]) for k in ("registered", "warm_up_end", "max_after_warm_up", "end"))],
         ["device bytes warm / end", f"{report.device_bytes['warm_up_end']:,} / {report.device_bytes['end']:,}"],
+        ["GPU MiB (nvidia-smi) warm / end", f"{report.gpu_memory_mib['warm_up_end']} / {report.gpu_memory_mib['end']}"],
     ]  # fmt: skip
     print_table(f"soak on {report.device}, {report.date}", ["what", "value"], rows)
     for text in (report.wrong_answers + report.final_failures)[:10]:
