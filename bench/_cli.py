@@ -1,4 +1,4 @@
-"""`badf bench NAME [flags]`: run one benchmark (engine, accuracy, service, soak)."""
+"""`badf bench NAME [flags]`: run one benchmark (engine, accuracy, service, scaleout, soak)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import importlib
 _BENCHMARKS = {
     "engine": ("badf.bench.engine", "per-stage build/update times, memory, and the dense-grid baseline"),
     "service": ("badf.bench.service", "frame + query round trip and query throughput, service beside in-process"),
+    "scaleout": ("badf.bench.scaleout", "aggregate frames and query points per second, one worker against N (GPUs)"),
     "accuracy": ("badf.bench.accuracy", "error against run time (ADF depths, exact, dense grid, CPU peers) and the "
                  "stability table"),
     "soak": ("badf.bench.soak", "clients x objects streaming and querying for a bounded time; answers and memory "

@@ -206,6 +206,45 @@ def measure_traversals(field, vertices, faces, *, device: str, repeat: int) -> d
     return out
 
 
+def measure_corner_costs(field, *, device: str, repeat: int) -> dict:
+    """Where the corner-distance stage spends its time: the same kernel over the corners within two finest
+    cells of the surface and over the rest, with last frame's faces as seeds (coherent) and without
+    (spatial). If the far corners, a minority, take as long as all of them, the stage is bound by its
+    slowest searches (tail latency), not by the number of corners."""
+    import warp as wp
+
+    from badf.server.adf._distance import corner_kernel
+
+    octree, corners = field._octree, field._corners
+    count = octree.corner_count
+    keys = octree.corner_keys.numpy()[:count]
+    values = corners.value.numpy()[:count]
+    cell = field.info()["domain"]["finest_cell"]
+    near = np.abs(values) < 2.0 * cell
+    bvh, sign = field._bvh.view(), field._normals.view()
+    side = field._domain.side
+    half = side / 2.0
+    out = {"corners": int(count), "near_corners": int(near.sum())}
+    kernel = corner_kernel(sign.method)
+    for label, subset in (("all", np.ones(count, bool)), ("near", near), ("far", ~near)):
+        subset_keys = wp.array(keys[subset], dtype=wp.int64, device=device)
+        n = int(subset.sum())
+        if n == 0:
+            continue
+        value = wp.zeros(n, dtype=wp.float32, device=device)
+        leaf = wp.zeros(n, dtype=wp.int32, device=device)
+        for coherent in (1, 0):
+            def launch(_, coherent=coherent):
+                wp.launch(kernel, dim=n, device=device, outputs=[value, leaf], inputs=[
+                    subset_keys, wp.vec3(-half, -half, -half), cell, 1.0 / side, field._depth, bvh, sign,
+                    field._band or 0.0, coherent, corners._previous_keys, corners._previous_face,
+                    corners._previous_count, wp.vec3(-half, -half, -half), 1.0 / cell])
+            launch(0)
+            name = f"{label}_{'coherent' if coherent else 'spatial'}_ms"
+            out[name] = round(_median(_time_wall(launch, device, repeat)), 4)
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     import warp as wp
 
@@ -240,6 +279,7 @@ def run(args: argparse.Namespace) -> int:
         if options == configs[0]:
             result.update(measure_queries(field, current, device=device, repeat=repeat))
             result["traversal"] = measure_traversals(field, current, faces, device=device, repeat=repeat)
+            result["corner_costs"] = measure_corner_costs(field, device=device, repeat=repeat)
         report["configurations"].append(result)
         rows.append([
             ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in options.items()),
@@ -257,6 +297,7 @@ def run(args: argparse.Namespace) -> int:
     )
     print("memory of the first configuration (bytes):", first["memory_bytes"])
     print("traversal at the corners (ms):", first["traversal"])
+    print("corner-distance kernel by corner subset (ms):", first["corner_costs"])
     print("stages of the first configuration, update (ms):", first["update_stages_ms"])
     print("stages of the first configuration, build (ms):", first["build_stages_ms"])
     print(f"queries of 65,536 points: adf {first['query_adf_ms']} ms, exact {first['query_exact_ms']} ms;"

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One call on a GPU machine (the device tool): set up, check on CUDA, then time.
-#   bash bench/gpu_session.sh [tests] [engine] [service] [accuracy] ...
+#   bash bench/gpu_session.sh [tests] [engine] [service] [scaleout] [accuracy] ...
 # Expects warp-lang and the wheels unpacked by ../shared/gpu/setup.sh (sourced before), the shared meshes
 # copied into $BADF_SHARED_DATA (default .gpudata/), and writes logs and JSON under $OUT.
 set -uo pipefail
@@ -21,6 +21,11 @@ for step in "$@"; do
     service)
       python3 -m badf.bench.service --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --out "$out/service-bunny.json" \
         2>&1 | tee "$out/service-bunny.log" ;;
+    scaleout)
+      # one worker per visible GPU against one worker, 8 and 16 client processes, and the one-GPU control;
+      # about 3-4 minutes on 2 GPUs (less when the engine's kernels are already in Warp's cache)
+      python3 -m badf.bench.scaleout --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --device cuda \
+        --out "$out/scaleout-bunny.json" 2>&1 | tee "$out/scaleout-bunny.log" | grep -v ' badf INFO ' ;;
     accuracy)
       # error against run time on every mesh (depths 5-9, dense grid to depth 9) and the stability table;
       # writes accuracy-<gpu>.md, two PNGs and results/accuracy-<gpu>.json under $OUT

@@ -3,10 +3,15 @@
 Every call that waits has a timeout (the client's default, or its own `timeout=`), and a worker that is
 gone is reported as WorkerUnavailableError, a worker that does not answer in time as WorkerTimeoutError.
 Errors the worker answers with are raised as the badf.protocol exception of their code, with its message.
+
+The client follows the workers' liveliness tokens: once an object's worker is gone, every call on the
+object's handle raises ObjectUnavailableError at once (requests in flight to it are cancelled), and
+`RemoteObject.reregister()` puts the object on another worker from what the handle kept.
 """
 
 from __future__ import annotations
 
+import threading
 from typing import Sequence, TypeVar
 
 import numpy as np
@@ -26,10 +31,12 @@ from badf.protocol import (
     Limits,
     Message,
     MessageError,
+    NotSupportedError,
     ObjectExistsError,
     ObjectInfo,
     ObjectNotFoundError,
     ObjectOptions,
+    ObjectUnavailableError,
     QueryMode,
     QueryOutput,
     QueryReply,
@@ -81,6 +88,13 @@ class Client:
         except zenoh.ZError as error:
             raise WorkerUnavailableError(f"cannot reach a Zenoh router at {', '.join(endpoints)}: {error}") from None
         self._publishers: dict[str, zenoh.Publisher] = {}
+        self._lock = threading.Lock()
+        self._live: set[str] = set()  # workers whose liveliness token this client sees
+        self._gone: set[str] = set()  # workers whose liveliness token this client saw go (and not come back)
+        self._cancellations: dict[str, zenoh.CancellationToken] = {}  # per worker, for requests in flight
+        self._liveliness = self._session.liveliness().declare_subscriber(
+            self.keys.every_worker_token, self._on_liveliness, history=True
+        )
 
     def __enter__(self) -> Client:
         return self
@@ -92,6 +106,7 @@ class Client:
         """Close the Zenoh session; objects on the workers stay."""
         if self._session.is_closed():
             return
+        self._liveliness.undeclare()
         for publisher in self._publishers.values():
             publisher.undeclare()
         self._publishers.clear()
@@ -124,9 +139,12 @@ class Client:
         """
         options = ObjectOptions(depth=depth, sign=sign, band=band, coherence=coherence, refine=refine, halo=halo)
         request = RegisterRequest(name, vertices, faces, options, frame=frame, replace=replace)
-        target = self._place(name, replace=replace, worker=worker, timeout=timeout)
-        info = self._ask(self.keys.worker_register(target), request, ObjectInfo, timeout=timeout, worker=target)
+        info = self._register(request, worker=worker, timeout=timeout)
         return RemoteObject(self, info, vertices=_owned(request.vertices, vertices), faces=_owned(request.faces, faces))
+
+    def _register(self, request: RegisterRequest, *, worker: str | None, timeout: float | None) -> ObjectInfo:
+        target = self._place(request.name, replace=request.replace, worker=worker, timeout=timeout)
+        return self._ask(self.keys.worker_register(target), request, ObjectInfo, timeout=timeout, worker=target)
 
     def object(self, name: str, *, timeout: float | None = None) -> RemoteObject:
         """A handle on an existing object (registered by any client); ObjectNotFoundError if there is none."""
@@ -141,7 +159,7 @@ class Client:
         return sorted(infos, key=lambda info: info.name)
 
     def workers(self, *, timeout: float | None = None) -> list[WorkerInfo]:
-        """Every worker in the namespace, sorted by id."""
+        """Every worker in the namespace, with its load, sorted by id."""
         infos = self._ask_all(self.keys.every_worker_info, InfoRequest(), WorkerInfo, timeout=timeout)
         return sorted(infos, key=lambda info: info.worker)
 
@@ -170,11 +188,55 @@ class Client:
             raise WorkerUnavailableError(
                 f"no badf worker answered in namespace {self.keys.namespace!r}; is `badf serve` running?"
             )
-        return min(workers, key=lambda info: (info.face_count, info.object_count, info.worker)).worker
+        least_loaded = min(
+            workers, key=lambda info: (info.face_count, info.requests_waiting, info.object_count, info.worker)
+        )
+        return least_loaded.worker
+
+    # --- the workers' liveliness -------------------------------------------------------------------
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        worker = str(sample.key_expr).rsplit("/", 1)[-1]
+        cancellation = None
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self._live.discard(worker)
+                self._gone.add(worker)
+                cancellation = self._cancellations.pop(worker, None)
+            else:
+                self._live.add(worker)
+                self._gone.discard(worker)
+        if cancellation is not None:
+            cancellation.cancel()  # the requests in flight to that worker end now, with no reply
+
+    def _worker_gone(self, worker: str) -> bool:
+        with self._lock:
+            return worker in self._gone
+
+    def _cancellation(self, worker: str) -> zenoh.CancellationToken:
+        """The token that cancels requests to `worker` when its liveliness token goes (a fresh one per life)."""
+        with self._lock:
+            token = self._cancellations.get(worker)
+            if token is None:
+                token = self._cancellations[worker] = zenoh.CancellationToken()
+            return token
+
+    def _check_worker(self, worker: str, name: str | None) -> None:
+        """Raise at once, without a round trip, when the client has seen `worker` go."""
+        if self._worker_gone(worker):
+            raise _worker_gone_error(worker, name, seen_going=True)
 
     # --- requests ----------------------------------------------------------------------------------
 
-    def _get(self, key: str, request: Message, *, timeout: float | None, fan_out: bool = False) -> zenoh.Handler:
+    def _get(
+        self,
+        key: str,
+        request: Message,
+        *,
+        timeout: float | None,
+        fan_out: bool = False,
+        cancellation: zenoh.CancellationToken | None = None,
+    ) -> zenoh.Handler:
         seconds = self.timeout if timeout is None else timeout
         try:
             return self._session.get(
@@ -182,6 +244,7 @@ class Client:
                 payload=encode(request),
                 timeout=seconds,
                 consolidation=zenoh.ConsolidationMode.NONE if fan_out else None,
+                cancellation_token=cancellation,
             )
         except zenoh.ZError as error:
             raise WorkerUnavailableError(f"cannot send a request on {key}: {error}") from None
@@ -197,7 +260,8 @@ class Client:
         name: str | None = None,
     ) -> M:
         """The one reply of `worker` to `request` on `key`, decoded as `expect`, or the error it carries."""
-        for reply in self._get(key, request, timeout=timeout):
+        self._check_worker(worker, name)
+        for reply in self._get(key, request, timeout=timeout, cancellation=self._cancellation(worker)):
             return self._read_reply(reply, expect, key, timeout)
         raise self._nobody_answered(key, name=name, worker=worker, timeout=timeout)
 
@@ -226,9 +290,8 @@ class Client:
     def _nobody_answered(self, key: str, *, name: str | None, worker: str | None, timeout: float | None) -> BadfError:
         """Why no queryable answered: the worker is gone, there is no worker, or there is no such object."""
         if worker is not None and not self._is_alive(worker, timeout):
-            held = f" (it held object {name!r})" if name is not None else ""
-            return WorkerUnavailableError(f"worker {worker} is not running: its liveliness token is gone{held}")
-        if worker is None and not self._worker_ids(timeout):
+            return _worker_gone_error(worker, name, seen_going=self._worker_gone(worker))
+        if worker is None and not self._live and not self.workers(timeout=timeout):
             return WorkerUnavailableError(f"no badf worker is reachable in namespace {self.keys.namespace!r}")
         if name is not None:
             return ObjectNotFoundError(
@@ -236,16 +299,15 @@ class Client:
             )
         return WorkerUnavailableError(f"nobody answered on {key}")
 
-    def _worker_ids(self, timeout: float | None) -> list[str]:
-        seconds = self.timeout if timeout is None else timeout
-        try:
-            replies = self._session.liveliness().get(self.keys.every_worker_token, timeout=seconds)
-            return [str(reply.ok.key_expr).rsplit("/", 1)[-1] for reply in replies if reply.ok is not None]
-        except zenoh.ZError:
-            return []
-
     def _is_alive(self, worker: str, timeout: float | None) -> bool:
-        return worker in self._worker_ids(timeout)
+        """False once the liveliness subscriber has seen `worker` go; otherwise whether `worker` answers an
+        info request. A request to a worker that dies ends as soon as the router sees its connection close,
+        which can be before this client hears of the token going, so `_live` alone would call the object
+        not found; and a liveliness get is no substitute: with a liveliness subscriber on the session,
+        Zenoh 1.10 was seen here to answer it with no tokens for a while."""
+        if self._worker_gone(worker):
+            return False
+        return any(True for _ in self._get(self.keys.worker_info(worker), InfoRequest(), timeout=timeout))
 
     def _publisher(self, key: str) -> zenoh.Publisher:
         publisher = self._publishers.get(key)
@@ -262,20 +324,26 @@ class Client:
 
 class RemoteObject:
     """An object on a worker. Keeps what a re-registration needs: faces, options and the last vertices sent
-    (faces and vertices are None for a handle from `Client.object`, which did not register it)."""
+    (faces and vertices are None for a handle from `Client.object`, which did not register it).
+
+    Once its worker is gone (`available` turns False within milliseconds of the worker's liveliness token
+    going), every call raises ObjectUnavailableError; `reregister()` restores the object elsewhere."""
 
     def __init__(
         self, client: Client, info: ObjectInfo, *, vertices: np.ndarray | None, faces: np.ndarray | None
     ) -> None:
         self._client = client
         self.name = info.name
+        self._adopt(info)
+        self._vertices = vertices
+        self._faces = faces
+
+    def _adopt(self, info: ObjectInfo) -> None:
         self.worker = info.worker
         self.vertex_count = info.vertex_count
         self.face_count = info.face_count
         self.options = info.options
         self._frame = info.frame
-        self._vertices = vertices
-        self._faces = faces
 
     def __repr__(self) -> str:
         return f"RemoteObject({self.name!r}, worker={self.worker!r}, frame={self._frame})"
@@ -284,6 +352,11 @@ class RemoteObject:
     def frame(self) -> int:
         """The newest frame number this handle knows of: the last it sent, or the last a reply named."""
         return self._frame
+
+    @property
+    def available(self) -> bool:
+        """False once this client has seen the object's worker go (its liveliness token); no round trip."""
+        return not self._client._worker_gone(self.worker)
 
     @property
     def vertices(self) -> np.ndarray | None:
@@ -304,9 +377,11 @@ class RemoteObject:
 
     def stream(self, vertices: np.ndarray) -> int:
         """Send (N, 3) vertices as the next frame without waiting; returns its number. The worker applies
-        the newest frame it has and drops older pending ones (see `info().frames_dropped`). Nothing is
-        raised when no worker receives it (it is gone): `update` and `info` tell."""
+        the newest frame it has and drops older pending ones (see `info().frames_dropped`). Raises
+        ObjectUnavailableError once the client has seen the object's worker go; a frame sent in the few
+        milliseconds before that is lost without a word."""
         frame = self._next_frame(vertices)
+        self._client._check_worker(self.worker, self.name)
         key = self._client.keys.object_frame(self.name)
         try:
             self._client._publisher(key).put(encode(frame))
@@ -358,6 +433,23 @@ class RemoteObject:
         self._saw(info.frame)
         return info
 
+    def reregister(self, *, worker: str | None = None, timeout: float | None = None) -> ObjectInfo:
+        """Register the object again from what this handle kept: its faces, options and the last vertices it
+        sent, numbered as the last frame it sent (later frames keep counting up). Placed on `worker`, or on
+        the least-loaded worker; the handle then points there. For an object whose worker is gone
+        (ObjectUnavailableError). ObjectExistsError if the object is still served (by its worker, or
+        registered again by another client: `Client.object(name)` finds it); NotSupportedError for a handle
+        from `Client.object`, which keeps no topology."""
+        if self._faces is None or self._vertices is None:
+            raise NotSupportedError(
+                f"this handle on {self.name!r} came from Client.object and keeps no faces or vertices; "
+                "register the object with Client.register"
+            )
+        request = RegisterRequest(self.name, self._vertices, self._faces, self.options, frame=self._frame)
+        info = self._client._register(request, worker=worker, timeout=timeout)
+        self._adopt(info)
+        return info
+
     def delete(self, *, timeout: float | None = None) -> int:
         """Delete the object on its worker; returns its last applied frame."""
         deleted = self._ask(self._client.keys.object_delete(self.name), DeleteRequest(self.name), Deleted, timeout)
@@ -377,6 +469,19 @@ class RemoteObject:
 
     def _saw(self, frame: int) -> None:
         self._frame = max(self._frame, frame)
+
+
+def _worker_gone_error(worker: str, name: str | None, *, seen_going: bool) -> WorkerUnavailableError:
+    if name is None:
+        if seen_going:
+            return WorkerUnavailableError(f"worker {worker} is gone: its liveliness token went away")
+        return WorkerUnavailableError(
+            f"worker {worker} does not answer: not started, gone, or not yet visible through the routers"
+        )
+    return ObjectUnavailableError(
+        f"object {name!r} is unavailable: its worker {worker} is gone (its liveliness token went away), and "
+        "the object's state with it; register it again, e.g. with reregister() on a handle that registered it"
+    )
 
 
 def _owned(canonical: np.ndarray, given: object) -> np.ndarray:

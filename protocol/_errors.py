@@ -141,6 +141,12 @@ class WorkerUnavailableError(BadfError, ConnectionError):
     code = ErrorCode.UNAVAILABLE
 
 
+class ObjectUnavailableError(WorkerUnavailableError):
+    """The object's worker is gone (the client saw its liveliness token go), and the object's state with it;
+    `RemoteObject.reregister()` registers it again on another worker from what the handle kept. Raised by
+    the client only: on the wire it is UNAVAILABLE."""
+
+
 class WorkerTimeoutError(BadfError, TimeoutError):
     code = ErrorCode.TIMEOUT
 

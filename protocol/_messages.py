@@ -699,7 +699,9 @@ class InfoRequest(_Message):
 
 @dataclass(frozen=True)
 class WorkerInfo(_Message):
-    """A worker: its id, device, how loaded it is, and the limits it enforces."""
+    """A worker: its id, device, the limits it enforces, and its load: what it holds (objects, vertices,
+    faces), what waits (requests queued for its objects, registrations not yet built), and what it has done
+    since it started (frames applied, queries and points answered; difference two reports for rates)."""
 
     KIND: ClassVar[MessageKind] = MessageKind.WORKER_INFO
     worker: str
@@ -709,18 +711,26 @@ class WorkerInfo(_Message):
     face_count: int
     uptime_s: float
     limits: dict[str, int] = field(default_factory=dict)
+    requests_waiting: int = 0
+    frames_applied: int = 0
+    queries_answered: int = 0
+    points_answered: int = 0
+
+    _COUNTS: ClassVar[tuple[str, ...]] = (
+        "object_count", "vertex_count", "face_count",
+        "requests_waiting", "frames_applied", "queries_answered", "points_answered",
+    )  # fmt: skip
 
     def __post_init__(self) -> None:
         check_name(self.worker, what="worker id")
-        for name in ("object_count", "vertex_count", "face_count"):
+        for name in self._COUNTS:
             _set(self, name, _check_int("WorkerInfo", name, getattr(self, name)))
         _set(self, "uptime_s", _check_number("WorkerInfo", "uptime_s", self.uptime_s))
 
     def metadata(self) -> dict[str, Any]:
         return {
-            "worker": self.worker, "device": self.device, "object_count": self.object_count,
-            "vertex_count": self.vertex_count, "face_count": self.face_count, "uptime_s": self.uptime_s,
-            "limits": self.limits,
+            "worker": self.worker, "device": self.device, "uptime_s": self.uptime_s, "limits": self.limits,
+            **{name: getattr(self, name) for name in self._COUNTS},
         }  # fmt: skip
 
     @classmethod
@@ -733,6 +743,10 @@ class WorkerInfo(_Message):
             fields.integer("face_count"),
             fields.number("uptime_s"),  # type: ignore[arg-type]
             fields.mapping("limits"),
+            requests_waiting=fields.integer("requests_waiting"),
+            frames_applied=fields.integer("frames_applied"),
+            queries_answered=fields.integer("queries_answered"),
+            points_answered=fields.integer("points_answered"),
         )
 
 

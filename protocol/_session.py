@@ -15,7 +15,7 @@ ZenohMode = Literal["router", "peer", "client"]
 def zenoh_config(
     *,
     mode: ZenohMode,
-    listen: Sequence[str] = (),
+    listen: Sequence[str] | None = None,
     connect: Sequence[str] = (),
     config_file: str | None = None,
     connect_timeout_s: float | None = None,
@@ -26,7 +26,9 @@ def zenoh_config(
     given are used) and shared memory off: Zenoh's SHM transport was seen to lose queries and replies on a
     starved CPU (eclipse-zenoh/zenoh#2628). With `config_file` (JSON5: TLS, authentication, access
     control), that file is the base and is left as it is. In both cases `mode` and the endpoints given here
-    override the base. `connect_timeout_s` bounds how long opening the session waits for `connect`.
+    override the base: `listen` None keeps the base's (Zenoh's default for a router is every interface's
+    port 7447, for a peer a random port), while an empty `listen` means listen nowhere. `connect_timeout_s`
+    bounds how long opening the session waits for `connect`.
     """
     if config_file is None:
         config = zenoh.Config()
@@ -35,7 +37,7 @@ def zenoh_config(
     else:
         config = zenoh.Config.from_file(config_file)
     config.insert_json5("mode", json.dumps(mode))
-    if listen:
+    if listen is not None:
         config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:
         config.insert_json5("connect/endpoints", json.dumps(list(connect)))

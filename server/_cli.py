@@ -1,4 +1,6 @@
-"""`badf serve`: a distance-field worker that is, by default, also the Zenoh router on 127.0.0.1:7447."""
+"""`badf serve`: a distance-field worker that is, by default, also the Zenoh router on 127.0.0.1:7447;
+with `--connect`, a worker that joins other routers; with `--router-only`, a router alone; with `--gpus`,
+a router and one worker process per GPU."""
 
 from __future__ import annotations
 
@@ -6,25 +8,39 @@ import argparse
 import sys
 
 from badf.protocol import DEFAULT_ENDPOINT, BadfError
-from badf.server._run import exit_now, run_worker
+from badf.server._cuda import NoCudaDeviceError, parse_gpus, visible_cuda_device_count
+from badf.server._router import RouterSettings
+from badf.server._run import exit_now, run_gpu_workers, run_router, run_worker
 from badf.server._worker import WorkerSettings, default_worker_id
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--listen", action="append", metavar="ENDPOINT",
-        help=f"Zenoh endpoint to listen on, repeatable (default for a router without --config: {DEFAULT_ENDPOINT})",
+        help=f"Zenoh endpoint to listen on, repeatable (default without --config: {DEFAULT_ENDPOINT}, "
+        "or no endpoint when --connect joins other routers)",
     )  # fmt: skip
     parser.add_argument(
-        "--connect", action="append", default=[], metavar="ENDPOINT", help="Zenoh endpoint to connect to, repeatable"
-    )
+        "--connect", action="append", default=[], metavar="ENDPOINT",
+        help="join the Zenoh router at ENDPOINT, e.g. tcp/HOST:7447 (repeatable)",
+    )  # fmt: skip
     parser.add_argument(
         "--mode", choices=("router", "peer", "client"), default="router",
-        help="Zenoh mode: router (default, nothing else needs starting), or peer/client behind another router",
+        help="Zenoh mode of a single worker (default: router, which also routes for the clients)",
     )  # fmt: skip
-    parser.add_argument(
-        "--device", default=None, help="Warp device, e.g. cuda:0 or cpu (default: Warp's default device)"
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument(
+        "--device", default=None, help="Warp device, e.g. cuda:1 or cpu (default: Warp's default device)"
     )
+    where.add_argument(
+        "--gpus", default=None, metavar="all|N,M",
+        help="a router here and one worker process per GPU (all visible ones, or these indices), each on "
+        "cuda:N with the id WORKER_ID-cudaN",
+    )  # fmt: skip
+    where.add_argument(
+        "--router-only", action="store_true",
+        help="run only a Zenoh router (no worker, no Warp) for workers and clients to connect to",
+    )  # fmt: skip
     parser.add_argument(
         "--namespace", default="badf", help="key-expression prefix shared with the clients (default: badf)"
     )
@@ -33,7 +49,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="Zenoh JSON5 config file (TLS, authentication, access control); used as is, with the flags above on top "
         "(without it: multicast scouting and shared memory are off)",
     )  # fmt: skip
-    parser.add_argument("--worker-id", default=None, help="this worker's id in key expressions (default: <host>-<pid>)")
+    parser.add_argument(
+        "--worker-id", default=None,
+        help="this worker's id in key expressions (default: <host>-<pid>); with --gpus, the prefix of the ids",
+    )  # fmt: skip
     parser.add_argument(
         "--stats-interval", type=float, default=10.0, metavar="SECONDS", help="seconds between stats lines"
     )
@@ -52,11 +71,42 @@ def settings_from(args: argparse.Namespace) -> WorkerSettings:
     )
 
 
+def router_settings_from(args: argparse.Namespace) -> RouterSettings:
+    for given, flag in ((args.worker_id, "--worker-id"), (args.mode != "router", "--mode")):
+        if given:
+            raise ValueError(f"{flag} does not apply to --router-only")
+    return RouterSettings(
+        namespace=args.namespace,
+        listen=tuple(args.listen) if args.listen else None,
+        connect=tuple(args.connect),
+        config_file=args.config,
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     try:
-        settings = settings_from(args)
+        if args.router_only:
+            router = router_settings_from(args)
+        else:
+            settings = settings_from(args)
+            gpus = None if args.gpus is None else gpus_from(args)
+    except NoCudaDeviceError as error:
+        print(f"badf serve --gpus: {error}; run one worker on the CPU with --device cpu", file=sys.stderr)
+        return 2
     except (BadfError, ValueError) as error:
         print(f"badf serve: {error}", file=sys.stderr)
         return 2
-    exit_now(run_worker(settings))
+    if args.router_only:
+        exit_now(run_router(router))
+    elif gpus is not None:
+        exit_now(run_gpu_workers(settings, gpus))
+    else:
+        exit_now(run_worker(settings))
     return 0  # not reached: exit_now ends the process
+
+
+def gpus_from(args: argparse.Namespace) -> list[int]:
+    """The GPU indices `--gpus` names, checked against the visible devices (NoCudaDeviceError if none)."""
+    if args.mode != "router":
+        raise ValueError("--mode applies to a single worker; with --gpus the workers join a router in this process")
+    return parse_gpus(args.gpus, visible_cuda_device_count())

@@ -1,24 +1,32 @@
-"""A worker process: logging, the Zenoh session, SIGINT/SIGTERM, then `serve` until a signal comes; and
-`worker_process`, which runs one as a child process (tests, benchmarks, the demo)."""
+"""Processes: a worker (`run_worker`), a router alone (`run_router`), and a router with worker processes
+behind it (`run_workers`; `run_gpu_workers` for one per GPU), each with logging and SIGINT/SIGTERM
+handling, running until a signal comes; and `worker_process`, `router_process` and `workers_process`,
+which run one as a child process (tests, benchmarks, the demo)."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import multiprocessing
+import multiprocessing.connection
 import os
 import signal
+import socket
 import sys
 import threading
 import time
 from contextlib import contextmanager
-from typing import Iterator, Protocol
+from typing import Any, Callable, Iterator, Protocol, Sequence
 
 import zenoh
 
 from badf.protocol import WorkerUnavailableError
+from badf.server._router import RouterSettings, listen_endpoints, log_worker_changes
 from badf.server._worker import WorkerSettings, engine_field_builder, serve
 
 log = logging.getLogger("badf.server")
+
+_SPAWN = multiprocessing.get_context("spawn")  # a forked child of a process with a Zenoh session hangs
 
 
 class _Settable(Protocol):
@@ -32,12 +40,8 @@ def run_worker(settings: WorkerSettings, ready: _Settable | None = None) -> int:
     declared. Exit status 1: the Zenoh session could not be opened (a taken port, a bad config file);
     2: the engine or the device is unavailable.
     """
-    if not logging.getLogger().handlers:
-        logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(asctime)s badf %(levelname)s %(message)s")
-    zenoh.init_log_from_env_or("error")
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda number, _frame: stop.set())
+    _configure_logging()
+    stop = _stop_on_signals()
     try:
         build_field, device = engine_field_builder(settings.device)
     except ImportError as error:
@@ -46,10 +50,8 @@ def run_worker(settings: WorkerSettings, ready: _Settable | None = None) -> int:
     except ValueError as error:
         log.error("cannot use device %r: %s", settings.device, error)
         return 2
-    try:
-        session = zenoh.open(settings.zenoh_config())
-    except zenoh.ZError as error:
-        log.error("cannot open the Zenoh session (is the port taken, or the config file wrong?): %s", error)
+    session = _open(settings.zenoh_config())
+    if session is None:
         return 1
     with session:
         serve(
@@ -63,48 +65,187 @@ def run_worker(settings: WorkerSettings, ready: _Settable | None = None) -> int:
     return 0
 
 
+def run_router(settings: RouterSettings, ready: _Settable | None = None) -> int:
+    """Run a Zenoh router alone (no worker, no Warp) until SIGINT or SIGTERM; returns the exit status
+    (1: the session could not be opened). Logs the workers of its namespace as they join and leave."""
+    _configure_logging()
+    stop = _stop_on_signals()
+    config = settings.zenoh_config()
+    session = _open(config)
+    if session is None:
+        return 1
+    with session:
+        watcher = log_worker_changes(session, settings.namespace)
+        log.info("router listening on %s", ", ".join(listen_endpoints(config)) or "no endpoint")
+        if ready is not None:
+            ready.set()
+        stop.wait()
+        watcher.undeclare()
+    log.info("router stopped")
+    return 0
+
+
+def run_gpu_workers(settings: WorkerSettings, gpus: Sequence[int]) -> int:
+    """`badf serve --gpus`: `run_workers` with one worker per GPU index N, on cuda:N, with the id
+    `{settings.worker_id}-cudaN`; the router listens where `settings` says and joins `settings.connect`."""
+    router = RouterSettings(settings.namespace, settings.listen, settings.connect, settings.config_file)
+    workers = [
+        dataclasses.replace(settings, worker_id=f"{settings.worker_id}-cuda{index}", device=f"cuda:{index}")
+        for index in gpus
+    ]
+    return run_workers(router, workers)
+
+
+def run_workers(
+    router: RouterSettings,
+    workers: Sequence[WorkerSettings],
+    ready: _Settable | None = None,
+    *,
+    start_timeout_s: float = 900.0,
+) -> int:
+    """A router in this process and one spawned process per worker, until SIGINT or SIGTERM.
+
+    The workers join the router on a private loopback port and listen nowhere themselves (their own
+    `mode`, `listen` and `connect` are replaced). `ready` is set once every worker is. On a signal the
+    workers and the router stop (status 0). A worker that fails to start stops everything with its status
+    (1: Zenoh, 2: engine or device); one that exits later is logged and the others keep serving, until
+    none is left (status 1).
+    """
+    _configure_logging()
+    stop = _stop_on_signals()
+    loopback = free_loopback_endpoint()
+    config = router.zenoh_config(extra_listen=(loopback,))
+    session = _open(config)
+    if session is None:
+        return 1
+    joined = [dataclasses.replace(w, mode="router", listen=(), connect=(loopback,)) for w in workers]
+    with session:
+        watcher = log_worker_changes(session, router.namespace)
+        log.info("router listening on %s", ", ".join(listen_endpoints(config)))
+        status = _supervise(joined, stop, ready, start_timeout_s)
+        watcher.undeclare()
+    log.info("router stopped")
+    return status
+
+
+def _supervise(
+    workers: Sequence[WorkerSettings], stop: threading.Event, ready: _Settable | None, start_timeout_s: float
+) -> int:
+    """Start a process per worker, wait until all are ready, then until `stop` or until none is left."""
+    children = [_spawn(_worker_main, settings, name=f"badf-worker-{settings.worker_id}") for settings in workers]
+    try:
+        deadline = time.monotonic() + start_timeout_s
+        starting = set(range(len(workers)))
+        while starting and not stop.is_set():
+            for index in sorted(starting):
+                (process, started), worker = children[index], workers[index]
+                if started.is_set():
+                    log.info("worker %s ready on %s (pid %d)", worker.worker_id, worker.device, process.pid)
+                    starting.discard(index)
+                elif not process.is_alive():
+                    log.error("worker %s exited with status %s before it was ready", worker.worker_id, process.exitcode)
+                    return process.exitcode if process.exitcode and process.exitcode > 0 else 1
+            if time.monotonic() > deadline:
+                log.error("%d workers not ready after %g s", len(starting), start_timeout_s)
+                return 1
+            stop.wait(0.1)
+        if ready is not None and not stop.is_set():
+            ready.set()
+        running = {process.sentinel: index for index, (process, _) in enumerate(children)}
+        while running and not stop.is_set():
+            for sentinel in multiprocessing.connection.wait(list(running), timeout=0.2):
+                index = running.pop(sentinel)  # type: ignore[call-overload]
+                log.error(
+                    "worker %s exited with status %s; the other workers keep serving",
+                    workers[index].worker_id, children[index][0].exitcode,
+                )  # fmt: skip
+        return 0 if stop.is_set() else 1
+    finally:
+        for process, _ in children:
+            if process.is_alive():
+                process.terminate()  # all at once, so they shut down side by side
+        for process, _ in children:
+            end_process(process)
+
+
 @contextmanager
 def worker_process(settings: WorkerSettings, *, start_timeout_s: float = 300.0) -> Iterator[multiprocessing.Process]:
     """Run `run_worker(settings)` in a child process for the duration of the block.
 
-    The child is started with `spawn` (a forked child of a process with a Zenoh session hangs when it opens
-    its own). Yields once the worker is ready (Warp imported, kernels loaded, keys declared), or raises
+    Yields once the worker is ready (Warp imported, kernels loaded, keys declared), or raises
     WorkerUnavailableError if it exits first or is not ready within `start_timeout_s`. Afterwards the
     child gets SIGTERM, and SIGKILL if it has not exited 30 s later.
     """
-    context = multiprocessing.get_context("spawn")
-    ready = context.Event()
-    process = context.Process(
-        target=_child_main, args=(settings, ready), name=f"badf-worker-{settings.worker_id}", daemon=True
-    )
-    process.start()
+    with _child(_worker_main, settings, f"badf-worker-{settings.worker_id}", start_timeout_s) as process:
+        yield process
+
+
+@contextmanager
+def router_process(settings: RouterSettings, *, start_timeout_s: float = 60.0) -> Iterator[multiprocessing.Process]:
+    """Run `run_router(settings)` in a child process for the duration of the block (as `worker_process`)."""
+    with _child(_router_main, settings, "badf-router", start_timeout_s) as process:
+        yield process
+
+
+@contextmanager
+def workers_process(
+    router: RouterSettings, workers: Sequence[WorkerSettings], *, start_timeout_s: float = 600.0
+) -> Iterator[multiprocessing.Process]:
+    """Run `run_workers(router, workers)` in a child process for the duration of the block (as
+    `worker_process`): ready once the router and every worker are."""
+    # Not a daemon: a daemonic process may not start the worker processes.
+    with _child(_workers_main, (router, list(workers)), "badf-workers", start_timeout_s, daemon=False) as process:
+        yield process
+
+
+@contextmanager
+def _child(
+    main: Callable[[Any, _Settable], None], settings: Any, name: str, start_timeout_s: float, *, daemon: bool = True
+) -> Iterator[multiprocessing.Process]:
+    process, ready = _spawn(main, settings, name=name, daemon=daemon)
     try:
         deadline = time.monotonic() + start_timeout_s
         while not ready.wait(0.1):
             if not process.is_alive():
-                raise WorkerUnavailableError(
-                    f"worker process exited with status {process.exitcode} before it was ready"
-                )
+                raise WorkerUnavailableError(f"{name} exited with status {process.exitcode} before it was ready")
             if time.monotonic() > deadline:
-                raise WorkerUnavailableError(f"worker process not ready after {start_timeout_s:g} s")
+                raise WorkerUnavailableError(f"{name} not ready after {start_timeout_s:g} s")
         yield process
     finally:
         end_process(process)
 
 
-def _child_main(settings: WorkerSettings, ready: _Settable) -> None:
+def _spawn(
+    main: Callable[[Any, _Settable], None], settings: Any, *, name: str, daemon: bool = True
+) -> tuple[multiprocessing.Process, Any]:
+    ready = _SPAWN.Event()
+    process = _SPAWN.Process(target=main, args=(settings, ready), name=name, daemon=daemon)
+    process.start()
+    return process, ready
+
+
+def _worker_main(settings: WorkerSettings, ready: _Settable) -> None:
     exit_now(run_worker(settings, ready))  # the exit status tells the parent why a worker did not start
 
 
 def exit_now(status: int) -> None:
-    """End a worker process once `run_worker` has returned: flush the logs and leave without interpreter
-    finalisation. By then the worker's threads are joined and its session is closed; finalisation only
+    """End a badf process (worker, router) once its `run_*` has returned: flush the logs and leave without
+    interpreter finalisation. By then its threads are joined and its session is closed; finalisation only
     tears down Zenoh's native threads, and one re-entering Python during it made about one exit in three
     abort (SIGABRT, "FATAL: exception not rethrown") in the demo on 2026-11-21."""
     logging.shutdown()
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(status)
+
+
+def _router_main(settings: RouterSettings, ready: _Settable) -> None:
+    exit_now(run_router(settings, ready))
+
+
+def _workers_main(settings: tuple[RouterSettings, list[WorkerSettings]], ready: _Settable) -> None:
+    router, workers = settings
+    exit_now(run_workers(router, workers, ready))
 
 
 def end_process(process: multiprocessing.Process, *, grace_s: float = 30.0) -> None:
@@ -115,3 +256,31 @@ def end_process(process: multiprocessing.Process, *, grace_s: float = 30.0) -> N
     if process.is_alive():
         process.kill()
         process.join(grace_s)
+
+
+def free_loopback_endpoint() -> str:
+    """A Zenoh TCP endpoint on 127.0.0.1 whose port was free a moment ago."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{probe.getsockname()[1]}"
+
+
+def _open(config: zenoh.Config) -> zenoh.Session | None:
+    zenoh.init_log_from_env_or("error")
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as error:
+        log.error("cannot open the Zenoh session (is the port taken, or the config file wrong?): %s", error)
+        return None
+
+
+def _configure_logging() -> None:
+    if not logging.getLogger().handlers:
+        logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(asctime)s badf %(levelname)s %(message)s")
+
+
+def _stop_on_signals() -> threading.Event:
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda number, _frame: stop.set())
+    return stop

@@ -54,8 +54,11 @@ def default_worker_id() -> str:
 
 @dataclass(frozen=True)
 class WorkerSettings:
-    """Everything `badf serve` takes. `listen` None means tcp/127.0.0.1:7447 for a router started without a
-    config file, and nothing otherwise (the file, or Zenoh's defaults, decide)."""
+    """Everything `badf serve` takes for one worker.
+
+    `listen` None means: with a config file, the file's endpoints; without one, tcp/127.0.0.1:7447 for a
+    router that connects to nothing (the embedded default), and no endpoint at all for a worker that joins
+    other routers through `connect` (it is reached through them, and takes no port of its own)."""
 
     worker_id: str = field(default_factory=default_worker_id)
     namespace: str = "badf"
@@ -79,8 +82,8 @@ class WorkerSettings:
 
     def zenoh_config(self) -> zenoh.Config:
         listen = self.listen
-        if listen is None:
-            listen = (DEFAULT_ENDPOINT,) if self.mode == "router" and self.config_file is None else ()
+        if listen is None and self.config_file is None:
+            listen = (DEFAULT_ENDPOINT,) if self.mode == "router" and not self.connect else ()
         return zenoh_config(mode=self.mode, listen=listen, connect=self.connect, config_file=self.config_file)
 
 
@@ -260,6 +263,9 @@ class Worker:
     def _worker_info(self, payload: zenoh.ZBytes | None) -> WorkerInfo:
         decode(request_bytes(payload, self.settings.limits), InfoRequest, limits=self.settings.limits)
         objects = self.objects()
+        totals = self.totals()
+        with self._lock:
+            registrations_waiting = len(self._registrations)
         return WorkerInfo(
             self.worker_id,
             self.device,
@@ -268,6 +274,10 @@ class Worker:
             sum(served.face_count for served in objects),
             time.monotonic() - self._started_at,
             self.settings.limits.to_json(),
+            requests_waiting=registrations_waiting + sum(served.waiting_count for served in objects),
+            frames_applied=totals.frames_applied,
+            queries_answered=totals.queries_answered,
+            points_answered=totals.points_answered,
         )
 
     def totals(self) -> Counters:

@@ -306,3 +306,34 @@ def test_slice_grid_and_crossing_cells(device):
     assert np.all((cut.cell_lower[:, 1] <= position + 1e-6) & (position <= cut.cell_upper[:, 1] + 1e-6))
     shallow = field.slice("y", position, resolution=8, max_level=3)
     assert shallow.cell_level.max() <= 3 and len(shallow.cell_level) < len(cut.cell_level)
+
+
+def test_fields_used_from_several_threads_answer_as_if_alone(device):
+    """A worker serves each object from its own thread: concurrent updates and queries of different fields
+    on one device give exactly the answers of the same calls made one after another."""
+    import threading
+
+    vertices, faces = meshes.sphere()
+    frames = [vertices * np.float32(1.0 + 0.05 * k) for k in range(1, 6)]
+    points = np.random.default_rng(29).uniform(-1.5, 1.5, size=(2000, 3)).astype(np.float32)
+
+    def run(field: DistanceField, out: list) -> None:
+        for frame in frames:
+            field.update(frame)
+            out.append(field.query(points, mode="adf").distance)
+            out.append(field.query(points, mode="exact", outputs=("distance", "face")).distance)
+
+    serial: list = []
+    run(DistanceField(vertices, faces, depth=4, device=device), serial)
+    results = [[] for _ in range(4)]
+    fields = [DistanceField(vertices, faces, depth=4, device=device) for _ in results]
+    threads = [threading.Thread(target=run, args=(field, out)) for field, out in zip(fields, results)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=600)
+        assert not thread.is_alive()
+    for out in results:
+        assert len(out) == len(serial)
+        for got, expected in zip(out, serial):
+            np.testing.assert_array_equal(got, expected)

@@ -108,7 +108,10 @@ def samples() -> dict[type, object]:
             corner_points=rng.normal(size=(8, 3)).astype(np.float32),
         ),  # fmt: skip
         InfoRequest: InfoRequest("bunny"),
-        WorkerInfo: WorkerInfo("w1", "cuda:0", 2, 100, 200, 12.5, Limits().to_json()),
+        WorkerInfo: WorkerInfo(
+            "w1", "cuda:0", 2, 100, 200, 12.5, Limits().to_json(),
+            requests_waiting=3, frames_applied=40, queries_answered=7, points_answered=7000,
+        ),  # fmt: skip
         DeleteRequest: DeleteRequest("bunny"),
         Deleted: Deleted("bunny", 7),
         ErrorReply: ErrorReply(int(ErrorCode.NOT_FOUND), "no object 'bunny'"),

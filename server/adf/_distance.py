@@ -98,23 +98,24 @@ class PointQuery:
         self.buffers = buffers
         self.device = buffers.device
 
-    def run(self, local_points: np.ndarray, *, exact: bool, outputs: int, octree: OctreeView, corner_value: wp.array,
-            corner_leaf: wp.array, bvh: BvhView, sign: SignView, side: float, band: float | None,
-            results: dict[str, np.ndarray], start: int) -> None:
-        """Answer one batch (float32 local coordinates); copy the asked outputs into results[...][start:]."""
+    def run(self, points: np.ndarray, offset: np.ndarray, *, exact: bool, outputs: int, octree: OctreeView,
+            corner_value: wp.array, corner_leaf: wp.array, bvh: BvhView, sign: SignView, side: float,
+            band: float | None, results: dict[str, np.ndarray], start: int) -> None:
+        """Answer one batch of float32 points, `points - offset` in the engine's local coordinates; copy the
+        asked outputs into results[...][start:]."""
         b = self.buffers
-        n = len(local_points)
-        points = b.ensure("query.points", n, wp.vec3)
+        n = len(points)
         distance = b.ensure("query.distance", n if outputs & OUT_DISTANCE else 1, wp.float32)
         closest = b.ensure("query.closest", n if outputs & OUT_CLOSEST else 1, wp.vec3)
         normal = b.ensure("query.normal", n if outputs & OUT_NORMAL else 1, wp.vec3)
         face = b.ensure("query.face", n if outputs & OUT_FACE else 1, wp.int32)
-        wp.copy(points, wp.array(local_points, dtype=wp.vec3, device="cpu", copy=False), count=n)
+        device_points = b.ensure("query.points", n, wp.vec3)
+        wp.copy(device_points, wp.array(points, dtype=wp.vec3, device="cpu", copy=False), count=n)
         wp.launch(
             query_kernel(sign.method),
             dim=n,
-            inputs=[points, 1 if exact else 0, outputs, octree, corner_value, corner_leaf, bvh, sign, 1.0 / side,
-                    band or 0.0],
+            inputs=[device_points, wp.vec3(*offset), 1 if exact else 0, outputs, octree, corner_value, corner_leaf,
+                    bvh, sign, 1.0 / side, band or 0.0],
             outputs=[distance, closest, normal, face],
             device=self.device,
         )
@@ -257,6 +258,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
 
     def query_points(
         points: wp.array(dtype=wp.vec3),
+        offset: wp.vec3,
         exact: int,
         outputs: int,
         tree: OctreeView,
@@ -272,7 +274,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         out_face: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
-        p = points[i]
+        p = points[i] - offset
         resolution = 1 << tree.depth
         g = (p - tree.origin) / tree.cell
         top = float(resolution)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+import threading
 import time
 from dataclasses import dataclass
 from typing import Literal
@@ -42,6 +44,29 @@ from badf.server.adf._sign import (
     resolve_sign,
 )
 from badf.server.adf._tolerances import DOMAIN_MARGIN, QUERY_CHUNK, REDOMAIN_MIN_FILL
+
+# One lock per device: Warp's CUDA sorts keep per-device scratch in native code and its launches are not
+# documented as thread-safe, so engine work on a device is serialised across threads (a worker serves each
+# object from its own thread). The device runs one stream in order anyway; only host-side work loses overlap.
+_DEVICE_LOCKS: dict[str, threading.RLock] = {}
+_LOCKS_GUARD = threading.Lock()
+
+
+def _device_lock(device: wp.Device) -> threading.RLock:
+    with _LOCKS_GUARD:
+        return _DEVICE_LOCKS.setdefault(str(device), threading.RLock())
+
+
+def _on_device(method):
+    """Run a DistanceField method holding its device's lock."""
+
+    @functools.wraps(method)
+    def locked(self, *args, **kwargs):
+        with _device_lock(self._device):
+            return method(self, *args, **kwargs)
+
+    return locked
+
 
 QueryMode = Literal["adf", "exact"]
 QueryOutput = Literal["distance", "closest_point", "normal", "face"]
@@ -171,9 +196,13 @@ class DistanceField:
         self._frame = 0
         self._counters = _Counters()
 
+        with _device_lock(self._device):
+            self._build(local, f, len(v), area, float(np.max(hi - lo)))
+
+    def _build(self, local: np.ndarray, f: np.ndarray, vertex_count: int, area: float, extent: float) -> None:
         self._buffers = DeviceBuffers(self._device)
         b = self._buffers
-        self._vertices = b.array("mesh.vertices", len(v), wp.vec3)
+        self._vertices = b.array("mesh.vertices", vertex_count, wp.vec3)
         self._faces = b.array("mesh.faces", len(f), wp.vec3i)
         self._faces.assign(f)
         self._clock = StageClock(self._device)
@@ -184,9 +213,10 @@ class DistanceField:
         self._corners = CornerField(b)
         self._points = PointQuery(b)
         self._slice_cells = SliceCells(b)
-        self._apply(local, float(np.max(hi - lo)), domain_moved=True)
+        self._apply(local, extent, domain_moved=True)
 
     # -- public API -----------------------------------------------------------------------------------
+    @_on_device
     def update(self, vertices) -> int:
         """Replace the vertex positions (same count and topology) and rebuild the field; returns the frame.
 
@@ -203,6 +233,7 @@ class DistanceField:
         self._counters.updates += 1
         return self._frame
 
+    @_on_device
     def query(
         self,
         points,
@@ -230,9 +261,14 @@ class DistanceField:
             bits |= OUTPUT_BITS[name]
         tree = self._octree.view(self._domain.origin, self._domain.side)
         bvh, sign = self._bvh.view(), self._normals.view()
+        # float32 points are recentred on the device (the same float32 subtraction); float64 ones on the host
+        # in float64, which keeps the precision of points far from the origin
+        on_device = p.dtype == np.float32
+        offset = self._domain.centre.astype(np.float32) if on_device else np.zeros(3, np.float32)
         for start in range(0, count, QUERY_CHUNK):
-            local = self._domain.to_local(p[start : start + QUERY_CHUNK])
-            self._points.run(local, exact=mode == "exact", outputs=bits, octree=tree,
+            chunk = p[start : start + QUERY_CHUNK]
+            self._points.run(chunk if on_device else self._domain.to_local(chunk), offset,
+                             exact=mode == "exact", outputs=bits, octree=tree,
                              corner_value=self._corners.value, corner_leaf=self._corners.leaf, bvh=bvh, sign=sign,
                              side=self._domain.side, band=self._band, results=arrays, start=start)
         if "closest_point" in arrays:
@@ -247,6 +283,7 @@ class DistanceField:
         self._counters.last_query_ms = (time.perf_counter() - start_time) * 1e3
         return result
 
+    @_on_device
     def slice(
         self,
         axis: Literal["x", "y", "z"] | int,
@@ -318,6 +355,7 @@ class DistanceField:
             "frame": self._frame,
         }
 
+    @_on_device
     def stats(self) -> dict:
         """Counts, per-stage times (ms) of the last build or update, and device bytes (JSON-serialisable)."""
         o = self._octree
@@ -377,6 +415,7 @@ class DistanceField:
         self._counters.last_update_wall_ms = (time.perf_counter() - wall) * 1e3
 
     # -- for tests and tools --------------------------------------------------------------------------
+    @_on_device
     def corner_samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(positions (C, 3) float64 in world coordinates, signed distances (C,), nearest faces (C,))."""
         keys = self._octree.corner_keys.numpy()[: self._octree.corner_count]
@@ -388,6 +427,7 @@ class DistanceField:
         faces = self._bvh.leaf_faces()[self._corners.leaf.numpy()[:n]]
         return positions, values, faces
 
+    @_on_device
     def octree_cells(self) -> tuple[np.ndarray, np.ndarray]:
         """(levels (K,), integer cell coordinates (K, 3) at each node's level) of every octree node."""
         keys = self._octree.node_keys.numpy()[: self._octree.node_count]

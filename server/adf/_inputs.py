@@ -31,7 +31,11 @@ def _numeric_array(value, name: str) -> np.ndarray:
 
 
 def _check_finite(arr: np.ndarray, name: str) -> None:
-    if arr.dtype.kind != "f":
+    """Finite and within +-MAX_COORDINATE; one min/max pass (a NaN fails both comparisons), details on failure."""
+    if arr.dtype.kind != "f" or arr.size == 0:
+        return
+    low, high = arr.min(), arr.max()
+    if low >= -MAX_COORDINATE and high <= MAX_COORDINATE:
         return
     bad = ~np.isfinite(arr)
     if bad.any():
@@ -39,10 +43,8 @@ def _check_finite(arr: np.ndarray, name: str) -> None:
         raise InvalidInputError(
             f"{name} must be finite, got {int(bad.sum())} NaN or Inf values in {len(rows)} rows (first at row {rows[0]})"
         )
-    if arr.size:
-        big = float(np.abs(arr).max())
-        if big > MAX_COORDINATE:
-            raise InvalidInputError(f"{name} must lie within +-{MAX_COORDINATE:g}, got a coordinate of {big:g}")
+    big = float(np.abs(arr).max())
+    raise InvalidInputError(f"{name} must lie within +-{MAX_COORDINATE:g}, got a coordinate of {big:g}")
 
 
 def as_points(value, name: str = "points", *, expected_count: int | None = None, allow_empty: bool = True) -> np.ndarray:

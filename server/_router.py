@@ -1,0 +1,64 @@
+"""A Zenoh router for badf workers and clients (`badf serve --router-only`, and the router in front of
+`badf serve --gpus`): it routes every request to the worker that declared the object's keys, and logs
+workers joining and leaving, as their liveliness tokens come and go."""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from typing import Sequence
+
+import zenoh
+
+from badf.protocol import DEFAULT_ENDPOINT, KeySpace, zenoh_config
+
+log = logging.getLogger("badf.server")
+
+
+@dataclass(frozen=True)
+class RouterSettings:
+    """Where a router listens and which routers it joins. `listen` None means: with a config file, the
+    file's endpoints; without one, tcp/127.0.0.1:7447 when it connects to nothing, else no endpoint."""
+
+    namespace: str = "badf"
+    listen: tuple[str, ...] | None = None
+    connect: tuple[str, ...] = ()
+    config_file: str | None = None
+
+    def __post_init__(self) -> None:
+        KeySpace(self.namespace)
+
+    def zenoh_config(self, *, extra_listen: Sequence[str] = ()) -> zenoh.Config:
+        """The router's configuration; `extra_listen` endpoints are added to the others (the private
+        loopback endpoint of the workers that `badf serve --gpus` starts)."""
+        listen = self.listen
+        if listen is None and self.config_file is None:
+            listen = () if self.connect else (DEFAULT_ENDPOINT,)
+        config = zenoh_config(mode="router", listen=listen, connect=self.connect, config_file=self.config_file)
+        if extra_listen:
+            current = json.loads(config.get_json("listen/endpoints"))
+            if isinstance(current, dict):  # Zenoh's per-mode default
+                current = current.get("router", [])
+            config.insert_json5("listen/endpoints", json.dumps([*current, *extra_listen]))
+        return config
+
+
+def listen_endpoints(config: zenoh.Config) -> list[str]:
+    """The endpoints a router configuration listens on, for the log."""
+    endpoints = json.loads(config.get_json("listen/endpoints"))
+    return endpoints.get("router", []) if isinstance(endpoints, dict) else endpoints
+
+
+def log_worker_changes(session: zenoh.Session, namespace: str) -> zenoh.Subscriber:
+    """Log each worker of `namespace` that joins or leaves (its liveliness token appears or goes)."""
+    keys = KeySpace(namespace)
+
+    def on_change(sample: zenoh.Sample) -> None:
+        worker = str(sample.key_expr).rsplit("/", 1)[-1]
+        if sample.kind == zenoh.SampleKind.DELETE:
+            log.warning("worker %s left: its objects are unavailable until clients register them again", worker)
+        else:
+            log.info("worker %s joined", worker)
+
+    return session.liveliness().declare_subscriber(keys.every_worker_token, on_change, history=True)
