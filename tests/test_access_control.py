@@ -24,7 +24,7 @@ from conftest import free_endpoint, wait_until
 
 from badf.bench.soak import PROBE, cube, expected_probe_distance, frame_vertices
 from badf.client import Client
-from badf.protocol import BadfError, WorkerUnavailableError, zenoh_config
+from badf.protocol import AccessDeniedError, BadfError, WorkerUnavailableError, zenoh_config
 from badf.server import WorkerSettings, worker_process
 
 EXAMPLES = pathlib.Path(__file__).resolve().parents[1] / "examples" / "secure"
@@ -179,13 +179,13 @@ def test_a_reader_queries_but_cannot_register_update_stream_or_delete(deployment
         assert_answers(seen, 1, half_size=0.5)
         assert seen.slice("z", 0.0, resolution=16).frame == 1
         assert seen.info().frame == 1
-        with pytest.raises(BadfError):
+        with pytest.raises(AccessDeniedError, match="tenant-a/worker/a/register"):
             carol.register("carols-own", BASE, FACES, depth=4)
-        with pytest.raises(BadfError):
+        with pytest.raises(AccessDeniedError, match="tenant-a/obj/reader-test/frame"):
             seen.update(frame_vertices(BASE, 2))
         for _ in range(20):  # never delivered: denied at the router
             seen.stream(frame_vertices(BASE, seen.frame + 1))
-        with pytest.raises(BadfError):
+        with pytest.raises(AccessDeniedError, match="tenant-a/obj/reader-test/delete"):
             seen.delete()
         for _ in range(2):
             seen.info()  # round trips of carol's session after her puts
