@@ -15,7 +15,8 @@ applied or dropped as stale (latest wins), none was rejected.
 
 The worker's resident memory (VmRSS from /proc) is sampled every half second; the engine's device bytes
 (object info, field_stats["device_bytes"], summed over the objects) and, on a GPU, the worker's GPU memory
-as nvidia-smi reports it are read at the end of the warm-up and at the end. Bounded: `--seconds`, `--max-rounds` per client, and a deadline for the whole run.
+as nvidia-smi reports it are read at the end of the warm-up and at the end. Bounded: `--seconds`,
+`--max-rounds` per client, and a deadline for the whole run.
 """
 
 from __future__ import annotations

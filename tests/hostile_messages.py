@@ -237,6 +237,14 @@ class Parts:
         assert offset == total == len(data)
         return cls(kind, descriptors, metadata, arrays, magic, version)
 
+    def described_length(self) -> int:
+        """The message length the header and descriptors describe (arrays start at multiples of 16)."""
+        offset = HEADER.size + DESCRIPTOR.size * len(self.descriptors) + len(self.metadata)
+        for code, ndim, dims in self.descriptors:
+            if code != WireDtype.ABSENT:
+                offset = -(-offset // ALIGN) * ALIGN + math.prod(dims[:ndim]) * NUMPY_DTYPES[WireDtype(code)].itemsize
+        return offset
+
     def assemble(self, *, total: int | None = None, metadata_size: int | None = None) -> bytes:
         """The bytes of these parts; `total` and `metadata_size` override the header's honest values."""
         body = bytearray(HEADER.size + DESCRIPTOR.size * len(self.descriptors))
