@@ -310,10 +310,15 @@ class Client:
         info request. A request to a worker that dies ends as soon as the router sees its connection close,
         which can be before this client hears of the token going, so `_live` alone would call the object
         not found; and a liveliness get is no substitute: with a liveliness subscriber on the session,
-        Zenoh 1.10 was seen here to answer it with no tokens for a while."""
+        Zenoh 1.10 was seen here to answer it with no tokens for a while. Only the worker's own answers
+        count (its info, or an ErrorReply): when the router the client reached was that worker and it died,
+        Zenoh itself answers the info request with an error ("Timeout"), which says nobody is there."""
         if self._worker_gone(worker):
             return False
-        return any(True for _ in self._get(self.keys.worker_info(worker), InfoRequest(), timeout=timeout))
+        replies = self._get(
+            self.keys.worker_info(worker), InfoRequest(), timeout=timeout, cancellation=self._cancellation(worker)
+        )
+        return any(reply.ok is not None or _is_error_reply(reply.err.payload.to_bytes()) for reply in replies)
 
     def _publisher(self, key: str) -> zenoh.Publisher:
         publisher = self._publishers.get(key)
@@ -475,6 +480,15 @@ class RemoteObject:
 
     def _saw(self, frame: int) -> None:
         self._frame = max(self._frame, frame)
+
+
+def _is_error_reply(data: bytes) -> bool:
+    """Whether an error reply is a worker's ErrorReply, rather than Zenoh's own (a timeout, say)."""
+    try:
+        decode(data, ErrorReply)
+    except MessageError:
+        return False
+    return True
 
 
 _DENIED = (

@@ -18,12 +18,13 @@ from contextlib import ExitStack
 
 import numpy as np
 import pytest
+import zenoh
 from conftest import free_endpoint, wait_until
 from fault_processes import ask_for_slices, big_cube, send_big_frames_until_killed
 
 from badf.bench.soak import PROBE, cube, expected_probe_distance, frame_vertices
 from badf.client import Client, RemoteObject
-from badf.protocol import WorkerUnavailableError
+from badf.protocol import KeySpace, ObjectInfo, ObjectOptions, WorkerUnavailableError, zenoh_config
 from badf.server import WorkerSettings, end_process, worker_process
 
 SPAWN = multiprocessing.get_context("spawn")
@@ -200,3 +201,24 @@ def test_garbage_connections_leave_the_router_serving(worker, endpoint: str, cli
         for open_socket in sockets:
             open_socket.close()
     assert obj.update(frame_vertices(BASE, 4)) == 4
+
+
+def test_an_error_from_zenoh_itself_is_no_sign_of_a_live_worker() -> None:
+    """When the router a client reached was its worker and that worker dies, Zenoh may answer the client's
+    check on the worker (an info request) with its own error, "Timeout" (seen in about 1 kill in 12 in
+    the test above). That is no answer from the worker: the call must end as WorkerUnavailableError, not
+    as ObjectNotFoundError (which would tell the caller the object was deleted)."""
+    endpoint = free_endpoint()
+    keys = KeySpace()
+
+    def zenoh_timeout(query: zenoh.Query) -> None:
+        query.reply_err(b"Timeout")  # what Zenoh's own reply looked like: not a badf ErrorReply
+        query.drop()
+
+    with zenoh.open(zenoh_config(mode="router", listen=[endpoint])) as router:
+        router.declare_queryable(keys.worker_info("departed"), zenoh_timeout)
+        with Client(endpoint, timeout=10) as client:
+            info = ObjectInfo("o", "departed", 3, 3, 1, ObjectOptions())
+            handle = RemoteObject(client, info, vertices=None, faces=None)
+            with pytest.raises(WorkerUnavailableError):
+                handle.query(PROBE)
