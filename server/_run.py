@@ -6,6 +6,7 @@ which run one as a child process (tests, benchmarks, the demo)."""
 from __future__ import annotations
 
 import dataclasses
+import faulthandler
 import logging
 import multiprocessing
 import multiprocessing.connection
@@ -233,6 +234,7 @@ def exit_now(status: int) -> None:
     interpreter finalisation. By then its threads are joined and its session is closed; finalisation only
     tears down Zenoh's native threads, and one re-entering Python during it made about one exit in three
     abort (SIGABRT, "FATAL: exception not rethrown") in the demo on 2026-11-21."""
+    faulthandler.cancel_dump_traceback_later()
     logging.shutdown()
     sys.stdout.flush()
     sys.stderr.flush()
@@ -279,8 +281,19 @@ def _configure_logging() -> None:
         logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(asctime)s badf %(levelname)s %(message)s")
 
 
+# A process still running this long after SIGINT/SIGTERM writes every thread's stack to stderr, so a stuck
+# shutdown says where it is stuck (the process then goes on; its parent may still end it).
+SHUTDOWN_REPORT_AFTER_S = 10.0
+
+
 def _stop_on_signals() -> threading.Event:
     stop = threading.Event()
+
+    def on_signal(_number, _frame) -> None:
+        if not stop.is_set():
+            faulthandler.dump_traceback_later(SHUTDOWN_REPORT_AFTER_S, exit=False)
+        stop.set()
+
     for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda number, _frame: stop.set())
+        signal.signal(signum, on_signal)
     return stop
