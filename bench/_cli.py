@@ -1,4 +1,4 @@
-"""`badf bench NAME [flags]`: run one benchmark (engine, accuracy, service, scaleout)."""
+"""`badf bench NAME [flags]`: run one benchmark (engine, accuracy, service, scaleout, soak)."""
 
 from __future__ import annotations
 
@@ -12,6 +12,8 @@ _BENCHMARKS = {
     "scaleout": ("badf.bench.scaleout", "aggregate frames and query points per second, one worker against N (GPUs)"),
     "accuracy": ("badf.bench.accuracy", "error against run time (ADF depths, exact, dense grid, CPU peers) and the "
                  "stability table"),
+    "soak": ("badf.bench.soak", "clients x objects streaming and querying for a bounded time; answers and memory "
+             "checked"),
 }
 
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One call on a GPU machine (the device tool): set up, check on CUDA, then time.
-#   bash bench/gpu_session.sh [tests] [engine] [service] [viewer] [scaleout] [accuracy] ...
+#   bash bench/gpu_session.sh [tests] [engine] [service] [viewer] [scaleout] [accuracy] [soak] ...
 # Expects warp-lang and the wheels unpacked by ../shared/gpu/setup.sh (sourced before), the shared meshes
 # copied into $BADF_SHARED_DATA (default .gpudata/), and writes logs and JSON under $OUT.
 set -uo pipefail
@@ -36,6 +36,10 @@ for step in "$@"; do
       # error against run time on every mesh (depths 5-9, dense grid to depth 9) and the stability table;
       # writes accuracy-<gpu>.md, two PNGs and results/accuracy-<gpu>.json under $OUT
       python3 -m badf.bench.accuracy --out-dir "$out" --workers "$(nproc)" 2>&1 | tee "$out/accuracy.log" | tail -45 ;;
+    soak)
+      # 8 client processes x 4 objects on one worker on cuda:0 for 60 s; answers, counters, RSS and GPU memory
+      python3 -m badf.bench.soak --device cuda:0 --seconds 60 --out "$out/soak-gpu.json" 2>&1 \
+        | tee "$out/soak.log" | grep -v ' badf INFO ' ;;
     *)
       echo "unknown step $step" ;;
   esac

@@ -19,6 +19,7 @@ import zenoh
 
 from badf.protocol import (
     DEFAULT_ENDPOINT,
+    AccessDeniedError,
     DEFAULT_LIMITS,
     BadfError,
     Deleted,
@@ -290,15 +291,20 @@ class Client:
         return error_for_code(error.code, error.message)
 
     def _nobody_answered(self, key: str, *, name: str | None, worker: str | None, timeout: float | None) -> BadfError:
-        """Why no queryable answered: the worker is gone, there is no worker, or there is no such object."""
+        """Why no queryable answered: the worker is gone, there is no worker, there is no such object, or the
+        request was not delivered although the worker and the object answer their info (access control)."""
         if worker is not None and not self._is_alive(worker, timeout):
             return _worker_gone_error(worker, name, seen_going=self._worker_gone(worker))
         if worker is None and not self._live and not self.workers(timeout=timeout):
             return WorkerUnavailableError(f"no badf worker is reachable in namespace {self.keys.namespace!r}")
         if name is not None:
+            if key != self.keys.object_info(name) and self._find(name, timeout=timeout) is not None:
+                return AccessDeniedError(f"object {name!r} answers its info but nobody answered on {key}: {_DENIED}")
             return ObjectNotFoundError(
                 f"no object {name!r} in namespace {self.keys.namespace!r} (deleted, or never registered)"
             )
+        if worker is not None:  # it answered its info in _is_alive
+            return AccessDeniedError(f"worker {worker} answers its info but nobody answered on {key}: {_DENIED}")
         return WorkerUnavailableError(f"nobody answered on {key}")
 
     def _is_alive(self, worker: str, timeout: float | None) -> bool:
@@ -306,10 +312,15 @@ class Client:
         info request. A request to a worker that dies ends as soon as the router sees its connection close,
         which can be before this client hears of the token going, so `_live` alone would call the object
         not found; and a liveliness get is no substitute: with a liveliness subscriber on the session,
-        Zenoh 1.10 was seen here to answer it with no tokens for a while."""
+        Zenoh 1.10 was seen here to answer it with no tokens for a while. Only the worker's own answers
+        count (its info, or an ErrorReply): when the router the client reached was that worker and it died,
+        Zenoh itself answers the info request with an error ("Timeout"), which says nobody is there."""
         if self._worker_gone(worker):
             return False
-        return any(True for _ in self._get(self.keys.worker_info(worker), InfoRequest(), timeout=timeout))
+        replies = self._get(
+            self.keys.worker_info(worker), InfoRequest(), timeout=timeout, cancellation=self._cancellation(worker)
+        )
+        return any(reply.ok is not None or _is_error_reply(reply.err.payload.to_bytes()) for reply in replies)
 
     def _publisher(self, key: str) -> zenoh.Publisher:
         publisher = self._publishers.get(key)
@@ -479,6 +490,21 @@ class RemoteObject:
 
     def _saw(self, frame: int) -> None:
         self._frame = max(self._frame, frame)
+
+
+def _is_error_reply(data: bytes) -> bool:
+    """Whether an error reply is a worker's ErrorReply, rather than Zenoh's own (a timeout, say)."""
+    try:
+        decode(data, ErrorReply)
+    except MessageError:
+        return False
+    return True
+
+
+_DENIED = (
+    "the request was not delivered, as Zenoh's access control does to what this client's user is not allowed "
+    "(the router's --config file)"
+)
 
 
 def _worker_gone_error(worker: str, name: str | None, *, seen_going: bool) -> WorkerUnavailableError:

@@ -4,6 +4,7 @@ Shared by the client and the worker; needs only numpy and zenoh.
 """
 
 from badf.protocol._errors import (
+    AccessDeniedError,
     BadfError,
     DtypeError,
     ErrorCode,
@@ -73,6 +74,7 @@ from badf.protocol._session import DEFAULT_ENDPOINT, ZenohMode, zenoh_config
 from badf.protocol._wire import PROTOCOL_VERSION
 
 __all__ = [
+    "AccessDeniedError",
     "AXES",
     "CELL_EMPTY",
     "CELL_LEAF",

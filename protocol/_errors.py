@@ -147,6 +147,12 @@ class ObjectUnavailableError(WorkerUnavailableError):
     the client only: on the wire it is UNAVAILABLE."""
 
 
+class AccessDeniedError(WorkerUnavailableError):
+    """The worker (and the object) answer, but not this request: the router did not deliver it, which is what
+    Zenoh's access control does, without a word, to a message the client's user is not allowed. Raised by
+    the client only, which infers it: on the wire nothing comes back at all."""
+
+
 class WorkerTimeoutError(BadfError, TimeoutError):
     code = ErrorCode.TIMEOUT
 

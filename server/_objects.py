@@ -1,13 +1,16 @@
 """One served object: its distance field, its Zenoh keys, and the one thread that touches the field.
 
-Zenoh callbacks only check sizes and hand work over: a streamed or blocking frame replaces the pending
-frame (the replaced one is counted as dropped), other requests join a bounded queue. The object's thread
-alternates between applying the pending frame and answering one waiting request, so queries always see a
-fully applied frame, a stream cannot starve queries, and a slow object delays only its own requests.
+Zenoh callbacks only check sizes and hand work over: a streamed frame replaces the pending streamed frame,
+a blocking update the pending update (the replaced one is counted as dropped), other requests join a
+bounded queue. A stream and an update may both be pending: Zenoh keeps one session's puts in order but
+may deliver a query (the update) before puts sent earlier, so the object's thread applies the one with the
+higher frame number and finds the other stale. The object's thread alternates between applying the
+pending frame and answering one waiting request, so queries always see a fully applied frame, a stream
+cannot starve queries, and a slow object delays only its own requests.
 Info and mesh requests are answered at once: the frame, counters and newest applied vertices are current
 (the object keeps a reference to them; the engine is not asked); the engine's own info and stats
 are a snapshot the object's thread refreshes at most every 0.25 s (on a GPU, reading the engine's stage
-timers synchronises the device, which would stall other objects if it happened on every frame).
+timers waits for the object's last stage and takes the device's lock, which every frame need not pay).
 """
 
 from __future__ import annotations
@@ -92,6 +95,10 @@ class _PendingFrame:
     payload: zenoh.ZBytes | None
     query: zenoh.Query | None  # None for a streamed frame
 
+    @property
+    def kind(self) -> str:
+        return "stream" if self.query is None else "update"
+
 
 @dataclass
 class _Request:
@@ -137,7 +144,7 @@ class ServedObject:
         self._snapshot_at = 0.0
         self._snapshot_stale = False
         self._lock = threading.Condition()
-        self._pending: _PendingFrame | None = None
+        self._pending: dict[str, _PendingFrame] = {}  # by kind: at most one stream and one update
         self._waiting: deque[_Request] = deque()
         self._closing: BadfError | None = None
         self._entities: list[Any] = []
@@ -182,10 +189,11 @@ class ServedObject:
     def _fail_waiting(self) -> None:
         with self._lock:
             reason = self._closing
-            frame, self._pending = self._pending, None
+            frames, self._pending = list(self._pending.values()), {}
             waiting, self._waiting = list(self._waiting), deque()
-        if frame is not None and frame.query is not None:
-            refuse(frame.query, reason)  # type: ignore[arg-type]
+        for frame in frames:
+            if frame.query is not None:
+                refuse(frame.query, reason)  # type: ignore[arg-type]
         for request in waiting:
             request.fail(reason)  # type: ignore[arg-type]
 
@@ -198,6 +206,12 @@ class ServedObject:
     @property
     def face_count(self) -> int:
         return self._face_count
+
+    @property
+    def pending_kinds(self) -> tuple[str, ...]:
+        """The frames waiting to be applied: "stream", "update", both or none."""
+        with self._lock:
+            return tuple(sorted(self._pending))
 
     @property
     def waiting_count(self) -> int:
@@ -240,7 +254,8 @@ class ServedObject:
         with self._lock:
             closing = self._closing
             if closing is None:
-                replaced, self._pending = self._pending, frame
+                replaced = self._pending.get(frame.kind)
+                self._pending[frame.kind] = frame
                 if replaced is not None:
                     self._counters.frames_dropped += 1
                 self._lock.notify_all()
@@ -305,25 +320,42 @@ class ServedObject:
                 if self._snapshot_stale:
                     timeout = max(0.0, self._snapshot_at + _SNAPSHOT_PERIOD_S - time.monotonic())
                 if not self._lock.wait_for(self._has_work, timeout=timeout):
-                    frame = request = None  # idle with a stale snapshot: refresh it below
+                    frames, request = [], None  # idle with a stale snapshot: refresh it below
                 elif self._closing is not None:
                     break
                 else:
-                    frame, self._pending = self._pending, None
+                    frames, self._pending = list(self._pending.values()), {}
                     request = self._waiting.popleft() if self._waiting else None
-            if frame is None and request is None:
+            if not frames and request is None:
                 try:
                     self._refresh_snapshot(force=True)
                 except Exception:  # noqa: BLE001 - a failing report must not end the object's thread
                     log.exception("reading the engine's info and stats for %r failed", self.name)
-            if frame is not None:
-                self._apply(frame)
+            if frames:
+                self._apply_newest(frames)
             if request is not None:
                 request.run()
         self._fail_waiting()
 
     def _has_work(self) -> bool:
         return bool(self._pending or self._waiting or self._closing)
+
+    def _apply_newest(self, frames: list[_PendingFrame]) -> None:
+        """Apply the pending frame with the highest number first; `_apply` then finds the other one (if a
+        stream and an update were both pending) stale, or malformed, and answers or counts it as such."""
+        if len(frames) > 1:
+            frames.sort(key=self._order, reverse=True)
+        for frame in frames:
+            self._apply(frame)
+
+    def _order(self, pending: _PendingFrame) -> tuple[int, bool]:
+        """(frame number, is an update): on equal numbers the update, which someone waits for, goes first;
+        a payload that does not decode goes last (its error is answered when `_apply` decodes it again)."""
+        try:
+            number = decode(request_bytes(pending.payload, self._limits), Frame, limits=self._limits).frame
+        except BadfError:
+            number = -1
+        return number, pending.query is not None
 
     def _apply(self, pending: _PendingFrame) -> None:
         def note(error: BadfError) -> None:
@@ -432,9 +464,10 @@ class ServedObject:
                 self._vertex_count, self._face_count = field.vertex_count, field.face_count
                 self._counters = Counters()
                 self._last_error = None
-                stale, self._pending = self._pending, None
-            if stale is not None and stale.query is not None:
-                refuse(stale.query, StaleFrameError(f"{self.name} was replaced before this frame was applied"))
+                stale, self._pending = list(self._pending.values()), {}
+            for pending in stale:
+                if pending.query is not None:
+                    refuse(pending.query, StaleFrameError(f"{self.name} was replaced before this frame was applied"))
             self._refresh_snapshot(force=True)
             done.set()
 

@@ -21,6 +21,7 @@ from badf.protocol import (
     BadfError,
     ErrorReply,
     Frame,
+    FrameAck,
     IndexRangeError,
     InfoRequest,
     KeySpace,
@@ -447,3 +448,33 @@ def test_config_file_is_the_base(tmp_path, endpoint: str) -> None:
     with ThreadWorker("", config_file=str(config)):  # no --listen: the file's endpoint is used
         with Client(endpoint, timeout=10) as client:
             assert client.workers()[0].worker == "w1"
+
+
+@pytest.mark.parametrize("update_arrives_first", [True, False], ids=["update-first", "stream-first"])
+def test_the_higher_numbered_of_a_pending_stream_and_update_wins(
+    worker: ThreadWorker, client: Client, raw: zenoh.Session, update_arrives_first: bool
+) -> None:
+    """Zenoh may deliver an update (a query) before frames its client streamed earlier (puts). Whichever
+    arrives first, the update (frame 3) is applied and acknowledged and the streamed frame 2 is dropped as
+    stale: a late stream never displaces a newer update, and an older pending stream is not applied."""
+    obj = client.register("blob", VERTICES, FACES)
+    served, field = worker.running.objects()[0], worker.fields[0]
+    field.gate.clear()
+    obj.stream(VERTICES + 1)  # frame 1: the object's thread takes it and waits at the gate
+    assert field.updates_started.acquire(timeout=20)
+    arrivals = ["update", "stream"] if update_arrives_first else ["stream", "update"]
+    update = None
+    for kind in arrivals:
+        if kind == "update":
+            update = raw.get(KEYS.object_frame("blob"), payload=encode(Frame("blob", 3, VERTICES + 3)), timeout=20)
+        else:
+            raw.put(KEYS.object_frame("blob"), encode(Frame("blob", 2, VERTICES + 2)))
+        wait_until(lambda: kind in served.pending_kinds, what=f"the {kind} to be pending")
+    field.gate.set()
+    [reply] = list(update)
+    assert reply.err is None, decode(reply.err.payload.to_bytes(), ErrorReply).message
+    assert decode(reply.ok.payload.to_bytes(), FrameAck).frame == 3
+    wait_until(lambda: obj.info().frames_dropped == 1, what="frame 2 to be dropped")
+    info = obj.info()
+    assert (info.frame, info.frames_applied, info.frames_dropped, info.frames_rejected) == (3, 2, 1, 0)
+    np.testing.assert_allclose(obj.query(POINTS).distance, expected_distance(POINTS, VERTICES + 3), rtol=1e-6)
