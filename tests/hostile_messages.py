@@ -32,6 +32,8 @@ from badf.protocol import (
     FrameAck,
     InfoRequest,
     LimitExceededError,
+    MeshReply,
+    MeshRequest,
     Limits,
     MalformedMessageError,
     MessageError,
@@ -180,6 +182,19 @@ def slice_replies(draw) -> SliceReply:
     )
 
 
+@st.composite
+def mesh_replies(draw) -> MeshReply:
+    vertices = draw(float_rows(st.integers(1, 16)))
+    faces = None
+    if draw(st.booleans()):
+        faces = draw(
+            st.integers(1, 16).flatmap(
+                lambda m: hnp.arrays(np.int32, (m, 3), elements=st.integers(0, len(vertices) - 1))
+            )
+        )
+    return MeshReply(draw(names), draw(frame_numbers), vertices, faces)
+
+
 limits_maps = st.dictionaries(st.text(max_size=12), st.integers(0, 2**40), max_size=7)
 MESSAGES: dict[type, st.SearchStrategy] = {
     RegisterRequest: register_requests(),
@@ -190,6 +205,8 @@ MESSAGES: dict[type, st.SearchStrategy] = {
     QueryReply: query_replies(),
     SliceRequest: slice_requests(),
     SliceReply: slice_replies(),
+    MeshRequest: st.builds(MeshRequest, names, st.booleans()),
+    MeshReply: mesh_replies(),
     InfoRequest: st.builds(InfoRequest, st.none() | names),
     WorkerInfo: st.builds(
         WorkerInfo, names, st.text(max_size=12), counts, counts, counts, st.floats(0, 1e9), limits_maps

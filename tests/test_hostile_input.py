@@ -29,6 +29,7 @@ from badf.protocol import (
     ErrorCode,
     Frame,
     LimitExceededError,
+    MeshReply,
     MessageError,
     QueryReply,
     QueryRequest,
@@ -197,6 +198,7 @@ def _smallest(cls: type):
             "a", 0, "x", 0.0, ((0, 0), (1, 1)), np.zeros((1, 1)), np.zeros((1, 2, 3)), np.zeros(1, np.uint8),
             np.zeros(1, np.uint8), row,
         ),  # fmt: skip
+        MeshReply: MeshReply("a", 0, np.eye(3, dtype=np.float32), np.array([[0, 1, 2]])),
     }[cls]
 
 

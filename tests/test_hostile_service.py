@@ -33,6 +33,7 @@ from badf.protocol import (
     ErrorReply,
     Frame,
     InfoRequest,
+    MeshRequest,
     InternalWorkerError,
     KeySpace,
     MessageError,
@@ -127,6 +128,7 @@ KEY_CASES = {
     "frame (update)": (KEYS.object_frame(TARGET), Frame, addressed(Frame)),
     "query": (KEYS.object_query(TARGET), QueryRequest, addressed(QueryRequest)),
     "slice": (KEYS.object_slice(TARGET), SliceRequest, addressed(SliceRequest)),
+    "mesh": (KEYS.object_mesh(TARGET), MeshRequest, addressed(MeshRequest)),
     "info": (KEYS.object_info(TARGET), InfoRequest, addressed(InfoRequest)),
     "delete": (KEYS.object_delete(TARGET), DeleteRequest, addressed(DeleteRequest)),
 }
