@@ -207,13 +207,13 @@ def measure_traversals(field, vertices, faces, *, device: str, repeat: int) -> d
 
 
 def measure_corner_costs(field, *, device: str, repeat: int) -> dict:
-    """Where the corner-distance stage spends its time: the same kernel over the corners within two finest
-    cells of the surface and over the rest, with last frame's faces as seeds (coherent) and without
-    (spatial). If the far corners, a minority, take as long as all of them, the stage is bound by its
-    slowest searches (tail latency), not by the number of corners."""
+    """Where the corner-distance stage spends its time: the unsigned search kernel over the corners within
+    two finest cells of the surface and over the rest, with last frame's faces as seeds (coherent) and
+    without (spatial). If the far corners, a minority, take as long as all of them, the stage is bound by
+    its slowest searches (tail latency), not by the number of corners."""
     import warp as wp
 
-    from badf.server.adf._distance import corner_kernel
+    from badf.server.adf._distance import corner_searches
 
     octree, corners = field._octree, field._corners
     count = octree.corner_count
@@ -221,11 +221,10 @@ def measure_corner_costs(field, *, device: str, repeat: int) -> dict:
     values = corners.value.numpy()[:count]
     cell = field.info()["domain"]["finest_cell"]
     near = np.abs(values) < 2.0 * cell
-    bvh, sign = field._bvh.view(), field._normals.view()
+    bvh = field._bvh.view()
     side = field._domain.side
     half = side / 2.0
     out = {"corners": int(count), "near_corners": int(near.sum())}
-    kernel = corner_kernel(sign.method)
     for label, subset in (("all", np.ones(count, bool)), ("near", near), ("far", ~near)):
         subset_keys = wp.array(keys[subset], dtype=wp.int64, device=device)
         n = int(subset.sum())
@@ -235,8 +234,8 @@ def measure_corner_costs(field, *, device: str, repeat: int) -> dict:
         leaf = wp.zeros(n, dtype=wp.int32, device=device)
         for coherent in (1, 0):
             def launch(_, coherent=coherent):
-                wp.launch(kernel, dim=n, device=device, outputs=[value, leaf], inputs=[
-                    subset_keys, wp.vec3(-half, -half, -half), cell, 1.0 / side, field._depth, bvh, sign,
+                wp.launch(corner_searches, dim=n, device=device, outputs=[value, leaf], inputs=[
+                    subset_keys, wp.vec3(-half, -half, -half), cell, 1.0 / side, field._depth, bvh,
                     field._band or 0.0, coherent, corners._previous_keys, corners._previous_face,
                     corners._previous_count, wp.vec3(-half, -half, -half), 1.0 / cell])
             launch(0)

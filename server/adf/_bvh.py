@@ -218,10 +218,13 @@ def _xyz(v: wp.vec4) -> wp.vec3:
 @wp.func
 def _nearest_in_range(bvh: BvhView, p: wp.vec3, first: int, count: int, best_leaf: int, best_sq: float):
     for leaf in range(first, first + count):
-        d_sq = leaf_distance_sq(bvh, leaf, p)
-        if d_sq < best_sq:
-            best_sq = d_sq
-            best_leaf = leaf
+        a, b, c = leaf_triangle(bvh, leaf)
+        # the triangle's own box first: it turns away most neighbours of the nearest for a few min/max
+        if box_distance_sq(p, wp.min(wp.min(a, b), c), wp.max(wp.max(a, b), c)) < best_sq:
+            d_sq = triangle_distance_sq(p, a, b, c)
+            if d_sq < best_sq:
+                best_sq = d_sq
+                best_leaf = leaf
     return best_leaf, best_sq
 
 
