@@ -52,6 +52,22 @@ def timestamp() -> str:
     return datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
 
 
+def start_warp(requested: str | None) -> str:
+    """Initialise Warp quietly; the device asked for, else the first GPU, else the CPU."""
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_ERROR
+    wp.init()
+    return requested or ("cuda:0" if wp.get_cuda_device_count() > 0 else "cpu")
+
+
+def fill_sized_defaults(args, small: dict, full: dict) -> None:
+    """Give every flag left unset its CPU-sized default (with --small) or its full one."""
+    for name, value in (small if args.small else full).items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+
+
 def bench_device_name(device: str) -> str:
     import warp as wp
 

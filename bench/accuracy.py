@@ -29,7 +29,7 @@ import numpy as np
 from badf.bench import _oracle as oracle
 from badf.bench import _tolerances as tol
 from badf.bench._cases import domain_of, near_surface, shared_mesh, stability_cases, surface_samples
-from badf.bench._common import bench_device_name, deform, print_table, timestamp
+from badf.bench._common import bench_device_name, deform, print_table, start_warp, timestamp
 
 SHARED_MESHES = ("stanford-bunny", "armadillo-86k", "spot", "fandisk", "rocker-arm", "homer", "vlasic_samba",
                  "sumner_horse_gallop")
@@ -356,13 +356,9 @@ def run(args: argparse.Namespace) -> int:
         report = json.loads(pathlib.Path(args.render).read_text())
         write_outputs(report, pathlib.Path(args.out_dir), pathlib.Path(args.render).stem.removeprefix("accuracy-"))
         return 0
-    import warp as wp
-
     from badf.server.adf import DistanceField
 
-    wp.config.log_level = wp.LOG_ERROR
-    wp.init()
-    args.device = args.device or ("cuda:0" if wp.get_cuda_device_count() > 0 else "cpu")
+    args.device = start_warp(args.device)
     depths = sorted(int(d) for d in args.depths.split(","))
     names = [n for n in args.meshes.split(",") if n]
     started = time.perf_counter()

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from badf.bench._common import bench_device_name, deform, load_npz, print_table, timestamp
+from badf.bench._common import bench_device_name, deform, load_npz, print_table, start_warp, timestamp
 
 
 def _median(values):
@@ -245,11 +245,7 @@ def measure_corner_costs(field, *, device: str, repeat: int) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    import warp as wp
-
-    wp.config.log_level = wp.LOG_ERROR
-    wp.init()
-    device = args.device or ("cuda:0" if wp.get_cuda_device_count() > 0 else "cpu")
+    device = start_warp(args.device)
     vertices, faces = load_npz(args.mesh)
     repeat = args.repeat
     report = {

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from badf.bench._common import deform, load_npz, print_table, timestamp
+from badf.bench._common import deform, fill_sized_defaults, load_npz, print_table, timestamp
 
 _SPAWN = multiprocessing.get_context("spawn")
 _FRAME_COUNT = 16
@@ -61,9 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from badf.server._cuda import NoCudaDeviceError, visible_cuda_device_count
 
-    for name, value in (_SMALL if args.small else _FULL).items():
-        if getattr(args, name) is None:
-            setattr(args, name, value)
+    fill_sized_defaults(args, _SMALL, _FULL)
     try:
         gpu_count = visible_cuda_device_count()
     except NoCudaDeviceError as error:

@@ -29,7 +29,15 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from badf.bench._common import bench_device_name, deform, load_npz, print_table, timestamp
+from badf.bench._common import (
+    bench_device_name,
+    deform,
+    fill_sized_defaults,
+    load_npz,
+    print_table,
+    start_warp,
+    timestamp,
+)
 
 _SPAWN = multiprocessing.get_context("spawn")
 _ECHO_KEY = "bench/echo"
@@ -63,16 +71,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import warp as wp
-
     from badf.server.adf import DistanceField
 
-    wp.config.log_level = wp.LOG_ERROR
-    wp.init()
-    device = args.device or ("cuda:0" if wp.get_cuda_device_count() > 0 else "cpu")
-    for name, value in (_SMALL if args.small else _FULL).items():
-        if getattr(args, name) is None:
-            setattr(args, name, value)
+    device = start_warp(args.device)
+    fill_sized_defaults(args, _SMALL, _FULL)
     batches = [int(size) for size in args.batches.split(",") if size]
     vertices, faces = load_npz(args.mesh)
     frames = [deform(vertices, k / 32) for k in range(32)]

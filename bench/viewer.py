@@ -32,7 +32,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from badf.bench._common import bench_device_name, deform, print_table, timestamp
+from badf.bench._common import bench_device_name, deform, fill_sized_defaults, print_table, start_warp, timestamp
 
 _SPAWN = multiprocessing.get_context("spawn")
 _WARM_UP = 3
@@ -80,14 +80,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import warp as wp
-
-    wp.config.log_level = wp.LOG_ERROR
-    wp.init()
-    device = args.device or ("cuda:0" if wp.get_cuda_device_count() > 0 else "cpu")
-    for name, value in (_SMALL if args.small else _FULL).items():
-        if getattr(args, name) is None:
-            setattr(args, name, value)
+    device = start_warp(args.device)
+    fill_sized_defaults(args, _SMALL, _FULL)
     frames, faces = _load_frames(args.mesh)
     report = {
         "benchmark": "viewer",
