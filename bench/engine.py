@@ -206,48 +206,70 @@ def measure_traversals(field, vertices, faces, *, device: str, repeat: int) -> d
     return out
 
 
-def measure_corner_costs(field, *, device: str, repeat: int) -> dict:
-    """Where the corner-distance stage spends its time: the unsigned search kernel over the corners within
-    two finest cells of the surface and over the rest, with last frame's faces as seeds (coherent) and
-    without (spatial). If the far corners, a minority, take as long as all of them, the stage is bound by
-    its slowest searches (tail latency), not by the number of corners."""
-    import warp as wp
+def measure_search_split(vertices, faces, *, depth: int, device: str, repeat: int,
+                         budgets=(64, 128, 256, 512), levels=(4, 6, 8), groups: int = 4096) -> dict:
+    """The corner stage with long searches shared out (SearchSplit) and without, at one depth: per setting,
+    the median time of the distance stage over coherent frames, how many corners ran past the budget, and
+    how the values compare with the unsplit searches' on one common frame (bit mismatches, the largest
+    difference over the bounding-box diagonal, sign flips)."""
+    from badf.server.adf import DistanceField
+    from badf.server.adf._distance import SearchSplit
 
-    from badf.server.adf._distance import corner_searches
+    field = DistanceField(vertices, faces, depth=depth, device=device)
+    corners = field._corners
+    diag = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+    settings = [(0, 1, 1)] + [(b, k, groups) for b in budgets for k in levels]
+    frames = [deform(vertices, 0.5 + 0.02 * k) for k in range(repeat + 1)]
+    check = deform(vertices, 0.9)
+    rows, reference = [], None
+    for budget, level, group_count in settings:
+        corners.split = SearchSplit(budget, level, group_count)
+        field.update(frames[0])
+        times = []
+        for frame in frames[1:]:
+            field.update(frame)
+            times.append(field.stats()["times_ms"]["distances"])
+        field.update(check)
+        _, values, nearest = field.corner_samples()
+        if reference is None:
+            reference = (values, nearest)
+        rows.append({
+            "budget": budget, "levels": level, "groups": group_count,
+            "distances_ms": round(_median(times), 4),
+            "long_corners": corners.long_searches(),
+            "value_mismatches": int(np.sum(values != reference[0])),
+            "max_difference_diag": float(np.max(np.abs(np.abs(values) - np.abs(reference[0])))) / diag,
+            "sign_flips": int(np.sum(np.sign(values) != np.sign(reference[0]))),
+            "face_differences": int(np.sum(nearest != reference[1])),
+        })
+    return {"depth": depth, "corners": int(field._octree.corner_count), "settings": rows}
 
-    octree, corners = field._octree, field._corners
-    count = octree.corner_count
-    keys = octree.corner_keys.numpy()[:count]
-    values = corners.value.numpy()[:count]
-    cell = field.info()["domain"]["finest_cell"]
-    near = np.abs(values) < 2.0 * cell
-    bvh = field._bvh.view()
-    side = field._domain.side
-    half = side / 2.0
-    out = {"corners": int(count), "near_corners": int(near.sum())}
-    for label, subset in (("all", np.ones(count, bool)), ("near", near), ("far", ~near)):
-        subset_keys = wp.array(keys[subset], dtype=wp.int64, device=device)
-        n = int(subset.sum())
-        if n == 0:
-            continue
-        value = wp.zeros(n, dtype=wp.float32, device=device)
-        leaf = wp.zeros(n, dtype=wp.int32, device=device)
-        for coherent in (1, 0):
-            def launch(_, coherent=coherent):
-                wp.launch(corner_searches, dim=n, device=device, outputs=[value, leaf], inputs=[
-                    subset_keys, wp.vec3(-half, -half, -half), cell, 1.0 / side, field._depth, bvh,
-                    field._band or 0.0, coherent, corners._previous_keys, corners._previous_face,
-                    corners._previous_count, wp.vec3(-half, -half, -half), 1.0 / cell])
-            launch(0)
-            name = f"{label}_{'coherent' if coherent else 'spatial'}_ms"
-            out[name] = round(_median(_time_wall(launch, device, repeat)), 4)
-    return out
+
+def print_search_split(sweep: dict) -> None:
+    print_table(
+        f"corner searches shared out, depth {sweep['depth']}, {sweep['corners']} corners: distance stage median ms",
+        ["budget", "levels", "groups", "distances ms", "long corners", "bit mismatches", "max diff / diag",
+         "sign flips", "face diffs"],
+        [[f"{v:.2g}" if isinstance(v, float) and k == "max_difference_diag" else v for k, v in row.items()]
+         for row in sweep["settings"]],
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     device = start_warp(args.device)
     vertices, faces = load_npz(args.mesh)
     repeat = args.repeat
+    if args.split_sweep:
+        sweeps = []
+        for depth in args.split_sweep:
+            sweeps.append(measure_search_split(vertices, faces, depth=depth, device=device, repeat=repeat))
+            print_search_split(sweeps[-1])
+        if args.out:
+            with open(args.out, "w") as f:
+                json.dump({"benchmark": "engine-search-split", "date": timestamp(), "device": bench_device_name(device),
+                           "mesh": {"path": args.mesh, "faces": len(faces)}, "repeat": repeat, "sweeps": sweeps},
+                          f, indent=1)
+        return 0
     report = {
         "benchmark": "engine",
         "date": timestamp(),
@@ -274,7 +296,6 @@ def run(args: argparse.Namespace) -> int:
         if options == configs[0]:
             result.update(measure_queries(field, current, device=device, repeat=repeat))
             result["traversal"] = measure_traversals(field, current, faces, device=device, repeat=repeat)
-            result["corner_costs"] = measure_corner_costs(field, device=device, repeat=repeat)
         report["configurations"].append(result)
         rows.append([
             ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in options.items()),
@@ -292,7 +313,6 @@ def run(args: argparse.Namespace) -> int:
     )
     print("memory of the first configuration (bytes):", first["memory_bytes"])
     print("traversal at the corners (ms):", first["traversal"])
-    print("corner-distance kernel by corner subset (ms):", first["corner_costs"])
     print("stages of the first configuration, update (ms):", first["update_stages_ms"])
     print("stages of the first configuration, build (ms):", first["build_stages_ms"])
     print(f"queries of 65,536 points: adf {first['query_adf_ms']} ms, exact {first['query_exact_ms']} ms;"
@@ -312,6 +332,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--depth", type=int, default=7, help="octree depth of the main configuration")
     parser.add_argument("--repeat", type=int, default=20, help="timed repeats per measurement")
     parser.add_argument("--quick", action="store_true", help="only the main configuration")
+    parser.add_argument("--split-sweep", type=int, nargs="+", metavar="DEPTH",
+                        help="only time the corner stage with long searches shared out or not, at these depths")
     parser.add_argument("--out", default=None, help="write the full results as JSON here")
 
 

@@ -337,3 +337,39 @@ def test_fields_used_from_several_threads_answer_as_if_alone(device):
         assert len(out) == len(serial)
         for got, expected in zip(out, serial):
             np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize(("name", "depth", "band"), [("spot", 5, None), ("rocker-arm", 5, None), ("spot", 5, 0.05),
+                                                     ("single-triangle", 3, None)])
+def test_long_searches_shared_out_give_the_same_corners(device, name, depth, band):
+    """Corner searches cut short after a budget and finished by one thread per subtree of the BVH's cut
+    (SearchSplit) give the values of whole searches (bit for bit on the CPU; on CUDA within rounding, as the
+    two kernels may contract a triangle's arithmetic differently) and faces that realise them; budgets of one
+    visit send nearly every corner that way, and few groups make each group take many corners."""
+    from badf.server.adf._distance import SearchSplit
+
+    vertices, faces = meshes.load(name)
+    diag = oracle.bbox_diagonal(vertices)
+    # without coherence every search starts from a spatial seed's loose bound, so the split searches must
+    # find the nearest face themselves
+    field = DistanceField(vertices, faces, depth=depth, band=None if band is None else band * diag, coherence=False,
+                          device=device)
+    field._corners.split = SearchSplit(0, 1, 1)
+    field.update(vertices)
+    positions, whole, _ = field.corner_samples()
+    truth = oracle.nearest(positions, vertices, faces)
+    sent = []
+    for budget, levels, groups in ((1, 3, 5), (4, 6, 64), (16, 10, 3), (1, 1, 1)):
+        field._corners.split = SearchSplit(budget, levels, groups)
+        field.update(vertices)
+        sent.append(field._corners.long_searches())
+        _, values, nearest_faces = field.corner_samples()
+        if device == "cpu":
+            assert np.array_equal(values, whole)
+        assert np.all(np.abs(values - whole) <= tol.EXACT_DISTANCE * diag)
+        # within the band (all of it without one) the named face is a nearest one
+        within = truth.distance < (np.inf if band is None else band * diag * (1 - 1e-4))
+        own = distance_to_own_face(positions[within], vertices, faces, nearest_faces[within])
+        assert np.all(np.abs(own - truth.distance[within]) <= tol.EXACT_DISTANCE * diag)
+    if len(faces) > 1:
+        assert sent[0] > len(whole) // 2  # a one-visit budget sends most corners to the split searches

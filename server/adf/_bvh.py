@@ -43,6 +43,7 @@ _CODE_SHIFT = wp.constant(32)
 _FAR_FIELD = wp.constant(WINDING_FAR_FIELD)
 _INV_FOUR_PI = wp.constant(1.0 / (4.0 * math.pi))
 LEAF_SIZE = wp.constant(4)
+UNLIMITED_VISITS = wp.constant(2**31 - 1)
 
 
 @wp.struct
@@ -90,6 +91,7 @@ class Bvh:
         self.centre_radius = b.array("bvh.centre_radius", moment_count, wp.vec4)
         self.normal_area = b.array("bvh.normal_area", moment_count, wp.vec4)
         self._buffers = b
+        self._cuts: dict[int, wp.array] = {}
 
     def build(self, vertices: wp.array, faces: wp.array, origin: wp.vec3, side: float) -> None:
         """Sort the triangles by the Morton code of their centroid in the domain and link the tree."""
@@ -121,6 +123,7 @@ class Bvh:
                 outputs=[self.slot_child, self.slot_first, self.slot_count, self.parent_slot],
                 device=self.device,
             )
+        self._cuts.clear()
 
     def refit(self, vertices: wp.array, faces: wp.array) -> None:
         """Recompute every child box (and winding moments) bottom-up from the current vertices."""
@@ -134,6 +137,17 @@ class Bvh:
                      self.normal_area],
             device=self.device,
         )
+
+    def cut(self, levels: int) -> wp.array:
+        """The slots of the subtrees `levels` below the root (2^levels entries, -1 for none), which together
+        hold every triangle once; kept until the next build, as only the tree's shape decides them."""
+        if levels not in self._cuts:
+            cut = self._buffers.array(f"bvh.cut.{levels}", 1 << levels, wp.int32)
+            cut.fill_(-1)
+            if self.internal_count > 0:
+                wp.launch(_cut_slots, dim=1 << levels, inputs=[self.view(), levels], outputs=[cut], device=self.device)
+            self._cuts[levels] = cut
+        return self._cuts[levels]
 
     def view(self) -> BvhView:
         v = BvhView()
@@ -230,22 +244,34 @@ def _nearest_in_range(bvh: BvhView, p: wp.vec3, first: int, count: int, best_lea
 
 @wp.func
 def nearest_leaf(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float):
-    """Nearest leaf to p among those strictly closer than sqrt(best_sq); (best_leaf, best_sq) if none.
+    """Nearest leaf to p among those strictly closer than sqrt(best_sq); (best_leaf, best_sq) if none."""
+    if bvh.internal_count == 0:
+        return _nearest_in_range(bvh, p, 0, 1, best_leaf, best_sq)
+    best_leaf, best_sq, done = nearest_in_subtree(bvh, p, 0, best_leaf, best_sq, UNLIMITED_VISITS)
+    return best_leaf, best_sq
+
+
+@wp.func
+def nearest_in_subtree(bvh: BvhView, p: wp.vec3, root: int, best_leaf: int, best_sq: float, budget: int):
+    """Nearest leaf under internal node `root` strictly closer than sqrt(best_sq), in at most `budget`
+    node visits: (best_leaf, best_sq, finished). An unfinished search still returns a valid upper bound.
 
     The paper's Algorithm 2: depth-first, nearer child first, small subtrees searched at once, pruning
     every box no closer than the best so far. A good starting bound (coherence) prunes early.
     """
-    if bvh.internal_count == 0:
-        return _nearest_in_range(bvh, p, 0, 1, best_leaf, best_sq)
     nodes = stack_int()
     bounds = stack_float()
-    nodes[0] = 0
+    nodes[0] = root
     bounds[0] = 0.0
     count = int(1)
+    visits = int(0)
     while count > 0:
         count -= 1
         if bounds[count] >= best_sq:
             continue
+        if visits == budget:
+            return best_leaf, best_sq, False
+        visits += 1
         slot = 2 * nodes[count]
         lower_0 = load_vec4(bvh.slot_lower, slot)
         lower_1 = load_vec4(bvh.slot_lower, slot + 1)
@@ -277,7 +303,37 @@ def nearest_leaf(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float):
             nodes[count] = bvh.slot_child[near]
             bounds[count] = d_near
             count += 1
+    return best_leaf, best_sq, True
+
+
+@wp.func
+def nearest_in_slot(bvh: BvhView, p: wp.vec3, slot: int, best_leaf: int, best_sq: float):
+    """Nearest leaf under the child held in `slot` (see BvhView), strictly closer than sqrt(best_sq)."""
+    lower = load_vec4(bvh.slot_lower, slot)
+    if box_distance_sq(p, _xyz(lower), _xyz(load_vec4(bvh.slot_upper, slot))) >= best_sq:
+        return best_leaf, best_sq
+    if lower[3] <= float(LEAF_SIZE):
+        return _nearest_in_range(bvh, p, bvh.slot_first[slot], bvh.slot_count[slot], best_leaf, best_sq)
+    best_leaf, best_sq, done = nearest_in_subtree(bvh, p, bvh.slot_child[slot], best_leaf, best_sq, UNLIMITED_VISITS)
     return best_leaf, best_sq
+
+
+@wp.kernel(enable_backward=False)
+def _cut_slots(bvh: BvhView, levels: int, cut: wp.array(dtype=wp.int32)):
+    """Slot k of the tree's cut `levels` deep, -1 where a small subtree above that depth covers k."""
+    k = wp.tid()
+    node = int(0)
+    slot = int(-1)
+    for level in range(levels):
+        if slot >= 0 and bvh.slot_count[slot] <= LEAF_SIZE:
+            # a small subtree stops the descent: only the first k under it keeps it
+            if (k & ((1 << (levels - level)) - 1)) != 0:
+                slot = -1
+            cut[k] = slot
+            return
+        slot = 2 * node + ((k >> (levels - 1 - level)) & 1)
+        node = bvh.slot_child[slot]
+    cut[k] = slot
 
 
 @wp.func

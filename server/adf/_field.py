@@ -376,6 +376,8 @@ class DistanceField:
                 "corner_candidates": 8 * leaves,
                 "unique_corners": o.corner_count,
                 "coherent_frame": self._corners.coherent,
+                # visits after which a corner's search was shared out over BVH subtrees (0: never)
+                "corner_search_budget": self._corners.search_budget,
             },
             "times_ms": self._clock.times_ms(),
             "update_wall_ms": round(c.last_update_wall_ms, 4),
@@ -410,7 +412,7 @@ class DistanceField:
             self._octree.build(self._vertices, self._faces, self._face_count, origin, side, clock)
             with clock.stage("distances"):
                 self._corners.compute(self._octree.corner_keys, self._octree.corner_count, self._bvh.view(),
-                                      self._normals.view(), self._domain.centre, side, self._depth, self._band,
+                                      self._bvh.cut, self._normals.view(), self._domain.centre, side, self._depth, self._band,
                                       coherent=self._coherence)
         self._counters.last_update_wall_ms = (time.perf_counter() - wall) * 1e3
 
@@ -423,7 +425,7 @@ class DistanceField:
         cell = self._domain.side / (1 << self._depth)
         positions = self._domain.centre + (-self._domain.side / 2.0 + lattice * cell)
         n = self._octree.corner_count
-        values = self._corners.value.numpy()[:n]
+        values = self._corners.value.numpy()[:n].copy()  # on the CPU, numpy() is a view of the buffer
         faces = self._bvh.leaf_faces()[self._corners.leaf.numpy()[:n]]
         return positions, values, faces
 

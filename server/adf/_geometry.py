@@ -130,6 +130,47 @@ def load_vec4(arr: wp.array(dtype=wp.vec4), i: int) -> wp.vec4:
     ...
 
 
+# A (squared distance, leaf) pair packed in 64 bits, the distance's float bits above the leaf, so that the
+# least packed value is the nearest leaf, and the lower leaf index among equals. Squared distances are
+# never negative, so their bits order as the floats do; leaf -1 packs above every leaf.
+@wp.func_native("""
+union { float f; unsigned int u; } bits;
+bits.f = d_sq;
+return (wp::int64)(((unsigned long long)bits.u << 32) | (unsigned long long)(unsigned int)leaf);
+""")
+def pack_distance_leaf(d_sq: float, leaf: int) -> wp.int64: ...
+
+
+@wp.func_native("""
+union { float f; unsigned int u; } bits;
+bits.u = (unsigned int)((unsigned long long)packed >> 32);
+return bits.f;
+""")
+def packed_distance_sq(packed: wp.int64) -> float: ...
+
+
+@wp.func_native("""
+return (int)(unsigned int)((unsigned long long)packed & 0xffffffffull);
+""")
+def packed_leaf(packed: wp.int64) -> int: ...
+
+
+@wp.func_native("""
+union { float f; unsigned int u; } bits;
+bits.f = d_sq;
+const unsigned long long value = ((unsigned long long)bits.u << 32) | (unsigned long long)(unsigned int)leaf;
+unsigned long long* address = reinterpret_cast<unsigned long long*>(&arr.data[0]) + i;
+#if defined(__CUDA_ARCH__)
+atomicMin(address, value);
+#else
+if (value < *address) *address = value;  // a CPU launch runs its threads one at a time
+#endif
+""")
+def atomic_min_distance_leaf(arr: wp.array(dtype=wp.int64), i: int, d_sq: float, leaf: int):
+    """arr[i] = min(arr[i], pack_distance_leaf(d_sq, leaf)), atomically."""
+    ...
+
+
 @wp.func
 def quantize(p: wp.vec3, origin: wp.vec3, inv_cell: float, resolution: int) -> wp.vec3i:
     """Integer cell coordinates of p on a grid of `resolution` cells per axis, clamped into the grid."""
