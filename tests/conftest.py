@@ -1,3 +1,4 @@
+import os
 import pathlib
 import socket
 import sys
@@ -7,6 +8,15 @@ import pytest
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
+try:
+    from hypothesis import settings as _hypothesis_settings
+
+    # The property tests draw the same examples on every run, so a CI result does not depend on luck;
+    # BADF_HYPOTHESIS_RANDOM=1 draws fresh ones, to look for new failures.
+    _hypothesis_settings.register_profile("badf", derandomize=os.environ.get("BADF_HYPOTHESIS_RANDOM") != "1")
+    _hypothesis_settings.load_profile("badf")
+except ImportError:  # hypothesis is in the test extra; only the property tests need it
+    pass
 
 
 def _devices() -> list[str]:
