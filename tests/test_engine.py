@@ -373,3 +373,12 @@ def test_long_searches_shared_out_give_the_same_corners(device, name, depth, ban
         assert np.all(np.abs(own - truth.distance[within]) <= tol.EXACT_DISTANCE * diag)
     if len(faces) > 1:
         assert sent[0] > len(whole) // 2  # a one-visit budget sends most corners to the split searches
+    # a frame far away, stretched and turned, moves the domain and rebuilds the BVH in another order: the
+    # cut must follow the new tree
+    field._corners.split = SearchSplit(4, 6, 64)
+    moved = vertices[:, [1, 2, 0]] * np.array([1.0, 2.5, 0.6]) + 40.0 * diag
+    field.update(moved)
+    positions, values, nearest_faces = field.corner_samples()
+    truth = oracle.nearest(positions, moved, faces)
+    within = truth.distance < (np.inf if band is None else band * diag * (1 - 1e-4))
+    assert np.all(np.abs(np.abs(values) - truth.distance)[within] <= tol.EXACT_DISTANCE * diag)

@@ -142,7 +142,7 @@ class Bvh:
         """The slots of the subtrees `levels` below the root (2^levels entries, -1 for none), which together
         hold every triangle once; kept until the next build, as only the tree's shape decides them."""
         if levels not in self._cuts:
-            cut = self._buffers.array(f"bvh.cut.{levels}", 1 << levels, wp.int32)
+            cut = self._buffers.ensure(f"bvh.cut.{levels}", 1 << levels, wp.int32)
             cut.fill_(-1)
             if self.internal_count > 0:
                 wp.launch(_cut_slots, dim=1 << levels, inputs=[self.view(), levels], outputs=[cut], device=self.device)
