@@ -143,9 +143,10 @@ class Bvh:
         hold every triangle once; kept until the next build, as only the tree's shape decides them."""
         if levels not in self._cuts:
             cut = self._buffers.ensure(f"bvh.cut.{levels}", 1 << levels, wp.int32)
-            cut.fill_(-1)
             if self.internal_count > 0:
                 wp.launch(_cut_slots, dim=1 << levels, inputs=[self.view(), levels], outputs=[cut], device=self.device)
+            else:
+                cut.fill_(-1)
             self._cuts[levels] = cut
         return self._cuts[levels]
 

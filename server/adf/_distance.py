@@ -24,7 +24,7 @@ from badf.server.adf._bvh import (
     spatial_seed,
 )
 from badf.server.adf._geometry import (
-    atomic_min_distance_leaf,
+    atomic_min_packed,
     closest_point_on_triangle,
     morton3,
     morton3_decode,
@@ -221,14 +221,19 @@ class PointQuery:
 
 
 @wp.func
-def _nearest_with_band(bvh: BvhView, p: wp.vec3, seed: int, band: float):
-    """Exact nearest leaf from a seed leaf; leaf -1 when nothing lies within `band` (> 0)."""
+def _nearest_with_band(bvh: BvhView, p: wp.vec3, seed: int, band: float, budget: int):
+    """Nearest leaf from a seed leaf in at most `budget` node visits: (leaf, squared distance, finished);
+    leaf -1 when nothing lies within `band` (> 0). An unfinished search's answer is an upper bound."""
     best_sq = leaf_distance_sq(bvh, seed, p)
     best = seed
     if band > 0.0 and band * band < best_sq:
         best = -1
         best_sq = band * band
-    return nearest_leaf(bvh, p, best, best_sq)
+    if bvh.internal_count == 0:
+        best, best_sq = nearest_leaf(bvh, p, best, best_sq)
+        return best, best_sq, True
+    best, best_sq, finished = nearest_in_subtree(bvh, p, 0, best, best_sq, budget)
+    return best, best_sq, finished
 
 
 @wp.func
@@ -333,16 +338,7 @@ def corner_searches(
         seed = bvh.face_leaf[previous_face[slot]]
     else:
         seed = spatial_seed(bvh, p, origin, inv_side)
-    best_leaf = seed
-    best_sq = leaf_distance_sq(bvh, seed, p)
-    if band > 0.0 and band * band < best_sq:
-        best_leaf = -1
-        best_sq = band * band
-    finished = bool(True)
-    if bvh.internal_count == 0:
-        best_leaf, best_sq = nearest_leaf(bvh, p, best_leaf, best_sq)
-    else:
-        best_leaf, best_sq, finished = nearest_in_subtree(bvh, p, 0, best_leaf, best_sq, budget)
+    best_leaf, best_sq, finished = _nearest_with_band(bvh, p, seed, band, budget)
     if best_leaf >= 0:
         distance[i] = wp.sqrt(best_sq)
         nearest[i] = best_leaf
@@ -384,7 +380,7 @@ def _split_searches(
         best_sq = long_bound[item]
         leaf, leaf_sq = nearest_in_slot(bvh, p, slot, -1, best_sq)
         if leaf >= 0:
-            atomic_min_distance_leaf(long_best, item, leaf_sq, leaf)
+            atomic_min_packed(long_best, item, pack_distance_leaf(leaf_sq, leaf))
 
 
 @wp.kernel(enable_backward=False)
@@ -528,7 +524,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         else:
             seed = spatial_seed(bvh, p, tree.origin, inv_side)
 
-        leaf, best_sq = _nearest_with_band(bvh, p, seed, band)
+        leaf, best_sq, finished = _nearest_with_band(bvh, p, seed, band, UNLIMITED_VISITS)
         # outside the domain (which holds the whole mesh) a point is outside the mesh
         if leaf < 0:
             inside = False

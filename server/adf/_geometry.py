@@ -156,18 +156,15 @@ def packed_leaf(packed: wp.int64) -> int: ...
 
 
 @wp.func_native("""
-union { float f; unsigned int u; } bits;
-bits.f = d_sq;
-const unsigned long long value = ((unsigned long long)bits.u << 32) | (unsigned long long)(unsigned int)leaf;
 unsigned long long* address = reinterpret_cast<unsigned long long*>(&arr.data[0]) + i;
 #if defined(__CUDA_ARCH__)
-atomicMin(address, value);
+atomicMin(address, (unsigned long long)packed);
 #else
-if (value < *address) *address = value;  // a CPU launch runs its threads one at a time
+if ((unsigned long long)packed < *address) *address = (unsigned long long)packed;  // a CPU launch runs its threads one at a time
 #endif
 """)
-def atomic_min_distance_leaf(arr: wp.array(dtype=wp.int64), i: int, d_sq: float, leaf: int):
-    """arr[i] = min(arr[i], pack_distance_leaf(d_sq, leaf)), atomically."""
+def atomic_min_packed(arr: wp.array(dtype=wp.int64), i: int, packed: wp.int64):
+    """arr[i] = min(arr[i], packed) for values of pack_distance_leaf, atomically."""
     ...
 
 
