@@ -245,6 +245,52 @@ def measure_search_split(vertices, faces, *, depth: int, device: str, repeat: in
     return {"depth": depth, "corners": int(field._octree.corner_count), "settings": rows}
 
 
+def measure_kernels(vertices, faces, *, depth: int, device: str, repeat: int) -> dict:
+    """Where a default coherent update's device time goes, kernel by kernel (Warp's CUDA activity timing):
+    per kernel or copy, its launches and summed device time over `repeat` updates, and the span of each
+    update against the time its kernels and copies were busy (the rest is the device waiting on the host)."""
+    import warp as wp
+    from badf.server.adf import DistanceField
+
+    field = DistanceField(vertices, faces, depth=depth, device=device)
+    frames = [deform(vertices, 0.5 + 0.02 * k) for k in range(repeat + 1)]
+    field.update(frames[0])
+    busy, spans, walls = [], [], []
+    per_name: dict[str, list[float]] = {}
+    for frame in frames[1:]:
+        wp.synchronize_device(device)
+        wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+        start = time.perf_counter()
+        field.update(frame)
+        wp.synchronize_device(device)
+        walls.append((time.perf_counter() - start) * 1e3)
+        results = wp.timing_end()
+        spans.append(field.stats()["times_ms"]["total"])
+        busy.append(sum(r.elapsed for r in results))
+        for r in results:
+            per_name.setdefault(r.name, []).append(r.elapsed)
+    rows = sorted(((name, len(t) / repeat, sum(t) / repeat) for name, t in per_name.items()), key=lambda r: -r[2])
+    return {
+        "depth": depth,
+        "updates": repeat,
+        "update_wall_ms": round(_median(walls), 4),
+        "update_span_ms": round(_median(spans), 4),
+        "busy_ms": round(_median(busy), 4),
+        "launches_per_update": round(sum(r[1] for r in rows), 1),
+        "activities": [{"name": n, "per_update": round(c, 2), "ms_per_update": round(t, 4)} for n, c, t in rows],
+    }
+
+
+def print_kernels(profile: dict) -> None:
+    print_table(
+        f"device activity of one coherent update, depth {profile['depth']}, mean over {profile['updates']} updates",
+        ["activity", "per update", "ms per update"],
+        [[a["name"], a["per_update"], a["ms_per_update"]] for a in profile["activities"]],
+    )
+    print(f"update: wall {profile['update_wall_ms']} ms, stage span {profile['update_span_ms']} ms, "
+          f"device busy {profile['busy_ms']} ms, {profile['launches_per_update']} activities per update")
+
+
 def print_search_split(sweep: dict) -> None:
     print_table(
         f"corner searches shared out, depth {sweep['depth']}, {sweep['corners']} corners: distance stage median ms",
@@ -259,6 +305,14 @@ def run(args: argparse.Namespace) -> int:
     device = start_warp(args.device)
     vertices, faces = load_npz(args.mesh)
     repeat = args.repeat
+    if args.kernels:
+        profile = measure_kernels(vertices, faces, depth=args.depth, device=device, repeat=repeat)
+        print_kernels(profile)
+        if args.out:
+            with open(args.out, "w") as f:
+                json.dump({"benchmark": "engine-kernels", "date": timestamp(), "device": bench_device_name(device),
+                           "mesh": {"path": args.mesh, "faces": len(faces)}, **profile}, f, indent=1)
+        return 0
     if args.split_sweep:
         sweeps = []
         for depth in args.split_sweep:
@@ -334,6 +388,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="only the main configuration")
     parser.add_argument("--split-sweep", type=int, nargs="+", metavar="DEPTH",
                         help="only time the corner stage with long searches shared out or not, at these depths")
+    parser.add_argument("--kernels", action="store_true",
+                        help="only profile a default update kernel by kernel (CUDA activity timing)")
     parser.add_argument("--out", default=None, help="write the full results as JSON here")
 
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One call on a GPU machine (the device tool): set up, check on CUDA, then time.
-#   bash bench/gpu_session.sh [tests] [engine] [split] [service] [viewer] [scaleout] [accuracy] [soak] ...
+#   bash bench/gpu_session.sh [tests] [engine] [split] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] ...
 # Expects warp-lang and the wheels unpacked by ../shared/gpu/setup.sh (sourced before), the shared meshes
 # copied into $BADF_SHARED_DATA (default .gpudata/), and writes logs and JSON under $OUT.
 set -uo pipefail
@@ -22,6 +22,10 @@ for step in "$@"; do
       # the corner stage with long searches shared out over BVH subtrees or not, at depths 5 to 8
       python3 -m badf.bench.engine --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --repeat 15 --split-sweep 5 6 7 8 \
         --out "$out/split-sweep-bunny.json" 2>&1 | tee "$out/split-sweep-bunny.log" ;;
+    kernels)
+      # one default update, kernel by kernel: device busy time against the update's span
+      python3 -m badf.bench.engine --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --repeat 10 --kernels \
+        --out "$out/kernels-bunny.json" 2>&1 | tee "$out/kernels-bunny.log" ;;
     service)
       python3 -m badf.bench.service --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --out "$out/service-bunny.json" \
         2>&1 | tee "$out/service-bunny.log" ;;
