@@ -41,13 +41,17 @@ def measure_field(vertices, faces, *, device: str, repeat: int, **options) -> di
     """Build and coherent-update times (median), per-stage medians, counts and memory of one configuration."""
     from badf.server.adf import DistanceField
 
-    field = DistanceField(vertices, faces, device=device, **options)  # warm-up: compiles kernels
+    # graphs=False: planned frames run their kernels one by one instead of replaying a captured CUDA graph
+    field_options = {k: v for k, v in options.items() if k != "graphs"}
+    graphs = options.get("graphs", True)
+    field = DistanceField(vertices, faces, device=device, **field_options)  # warm-up: compiles kernels
     field.update(deform(vertices, 0.5))
     builds, build_stages = [], []
 
     def build(_):
         nonlocal field
-        field = DistanceField(vertices, faces, device=device, **options)
+        field = DistanceField(vertices, faces, device=device, **field_options)
+        field.use_graphs = graphs
 
     for i in range(repeat):
         builds += _time_wall(build, device, 1)
@@ -74,6 +78,8 @@ def measure_field(vertices, faces, *, device: str, repeat: int, **options) -> di
         "build_stages_ms": stage_medians(build_stages),
         "update_stages_ms": stage_medians(update_stages),
         "counts": stats["counts"],
+        "replans": stats["replans"],
+        "graph_captures": stats["graph_captures"],
         "device_bytes": stats["device_bytes"],
         "memory_bytes": stats["memory_bytes"],
         "field": field,
@@ -254,6 +260,13 @@ def measure_kernels(vertices, faces, *, depth: int, device: str, repeat: int) ->
 
     field = DistanceField(vertices, faces, depth=depth, device=device)
     frames = [deform(vertices, 0.5 + 0.02 * k) for k in range(repeat + 1)]
+    graph_spans, graph_walls = [], []
+    for frame in frames:
+        start = time.perf_counter()
+        field.update(frame)
+        graph_walls.append((time.perf_counter() - start) * 1e3)
+        graph_spans.append(field.stats()["times_ms"]["total"])
+    field.use_graphs = False  # kernel by kernel: a graph's launch is timed as one activity
     field.update(frames[0])
     busy, spans, walls = [], [], []
     per_name: dict[str, list[float]] = {}
@@ -276,6 +289,9 @@ def measure_kernels(vertices, faces, *, depth: int, device: str, repeat: int) ->
         "update_wall_ms": round(_median(walls), 4),
         "update_span_ms": round(_median(spans), 4),
         "busy_ms": round(_median(busy), 4),
+        "graph_update_wall_ms": round(_median(graph_walls[3:]), 4),
+        "graph_update_span_ms": round(_median(graph_spans[3:]), 4),
+        "graph_captures": field.stats()["graph_captures"],
         "launches_per_update": round(sum(r[1] for r in rows), 1),
         "activities": [{"name": n, "per_update": round(c, 2), "ms_per_update": round(t, 4)} for n, c, t in rows],
     }
@@ -289,6 +305,8 @@ def print_kernels(profile: dict) -> None:
     )
     print(f"update: wall {profile['update_wall_ms']} ms, stage span {profile['update_span_ms']} ms, "
           f"device busy {profile['busy_ms']} ms, {profile['launches_per_update']} activities per update")
+    print(f"replayed from a CUDA graph: wall {profile['graph_update_wall_ms']} ms, "
+          f"span {profile['graph_update_span_ms']} ms ({profile['graph_captures']} captures)")
 
 
 def print_search_split(sweep: dict) -> None:
@@ -336,6 +354,7 @@ def run(args: argparse.Namespace) -> int:
     configs = [{"depth": args.depth}]
     if not args.quick:
         configs += [
+            {"depth": args.depth, "graphs": False},
             {"depth": args.depth, "coherence": False},
             {"depth": args.depth, "sign": "pseudonormal"},
             {"depth": args.depth, "sign": "none"},

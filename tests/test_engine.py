@@ -382,3 +382,44 @@ def test_long_searches_shared_out_give_the_same_corners(device, name, depth, ban
     truth = oracle.nearest(positions, moved, faces)
     within = truth.distance < (np.inf if band is None else band * diag * (1 - 1e-4))
     assert np.all(np.abs(np.abs(values) - truth.distance)[within] <= tol.EXACT_DISTANCE * diag)
+
+
+def test_planned_frames_equal_measured_frames(device):
+    """Frames after the first run without reading sizes back (on CUDA, replayed from a captured graph);
+    they give exactly what a frame that measures every size gives, also when a frame outgrows the planned
+    sizes (it is run again, measured) and when another object's larger frames run in between."""
+    vertices, faces = meshes.sphere()
+    flat = vertices * np.array([1.0, 1.0, 0.05], np.float32)
+    # flat, then inflating: the surface roughly doubles, past the planned headroom, within one domain
+    frames = [flat * np.float32(1.0 + 0.01 * k) for k in range(1, 6)]
+    frames += [vertices * np.array([1.0, 1.0, z], np.float32) for z in (0.6, 1.0, 1.0, 0.98, 0.97, 0.96)]
+    other_vertices, other_faces = meshes.load("spot")
+    rng = np.random.default_rng(31)
+    points = rng.uniform(-1.3, 1.3, size=(1500, 3)).astype(np.float32)
+
+    planned = DistanceField(flat, faces, depth=5, device=device)
+    measured = DistanceField(flat, faces, depth=5, device=device)
+    other = DistanceField(other_vertices, other_faces, depth=6, device=device)
+    for k, frame in enumerate(frames):
+        planned.update(frame)
+        other.update(other_vertices * np.float32(1.0 + 0.01 * k))
+        measured._planned = False  # every frame of this one measures its sizes
+        measured.update(frame)
+        assert planned.stats()["counts"] == measured.stats()["counts"]
+        for got, expected in zip(planned.corner_samples(), measured.corner_samples()):
+            np.testing.assert_array_equal(got, expected)
+        for got, expected in zip(planned.octree_cells(), measured.octree_cells()):
+            np.testing.assert_array_equal(got, expected)
+        a = planned.query(points, outputs=("distance", "normal", "face"))
+        b = measured.query(points, outputs=("distance", "normal", "face"))
+        for name in ("distance", "normal", "face"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    stats = planned.stats()
+    assert stats["replans"] >= 1 and stats["domain_moves"] == 0
+    if device.startswith("cuda"):
+        assert stats["graph_captures"] >= 1
+    # and the last frame is exact
+    positions, values, _ = planned.corner_samples()
+    pick = rng.choice(len(positions), 300, replace=False)
+    truth = oracle.signed_distance(positions[pick], frames[-1], faces)
+    assert np.abs(values[pick] - truth).max() <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frames[-1])

@@ -53,7 +53,7 @@ def _role(name: str) -> str:
         return "bvh"
     if name.startswith(("mesh.", "sign.")):
         return "mesh"
-    if name.startswith("corner.prev"):
+    if name.startswith(("corner.prev", "corner.next")):
         return "coherence"
     if name.startswith("query."):
         return "queries"

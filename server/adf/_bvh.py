@@ -79,6 +79,8 @@ class Bvh:
         self.sort_keys = b.array("bvh.sort_keys", 2 * n, wp.int64)
         self.sort_faces = b.array("bvh.sort_faces", 2 * n, wp.int32)
         self.face_leaf = b.array("bvh.face_leaf", n, wp.int32)  # inverse of sort_faces
+        self.leaf_count = b.array("bvh.leaf_count", 1, wp.int32)
+        self.leaf_count.fill_(n)
         self.parent_slot = b.array("bvh.parent_slot", nodes, wp.int32)
         self.visits = b.array("bvh.visits", max(n - 1, 1), wp.int32)
         self.slot_lower = b.array("bvh.slot_lower", slots, wp.vec4)
@@ -115,7 +117,7 @@ class Bvh:
             last = b.ensure("bvh.build.last", n - 1, wp.int32)
             prefix = b.ensure("bvh.build.prefix", n - 1, wp.int32)
             parent = b.ensure("bvh.build.parent", 2 * n - 1, wp.int32)
-            link_radix_tree(self.sort_keys, n, parent, left, right, first, prefix, last)
+            link_radix_tree(self.sort_keys, self.leaf_count, n, parent, left, right, first, prefix, last)
             wp.launch(
                 _link_slots,
                 dim=n - 1,
@@ -168,7 +170,8 @@ class Bvh:
 
 def link_radix_tree(
     keys: wp.array,
-    count: int,
+    count: wp.array,
+    capacity: int,
     parent: wp.array,
     left: wp.array,
     right: wp.array,
@@ -176,18 +179,19 @@ def link_radix_tree(
     prefix: wp.array,
     last: wp.array | None = None,
 ) -> None:
-    """Karras's parallel radix tree over `count` sorted, unique int64 keys.
+    """Karras's parallel radix tree over the first count[0] (at most `capacity`) sorted, unique int64 keys;
+    the count stays on the device.
 
     Fills, for internal node i: children `left[i]`, `right[i]` (leaf k as count - 1 + k), the range of keys
     under it `first[i]`..`last[i]`, its common-prefix length in code bits `prefix[i]`; and `parent` of every
     node (-1 for the root).
     """
     parent.fill_(-1)
-    if count > 1:
+    if capacity > 1:
         wp.launch(
             _link_radix_tree,
-            dim=count - 1,
-            inputs=[keys, count],
+            dim=capacity - 1,
+            inputs=[keys, count, capacity],
             outputs=[parent, left, right, first, prefix, last if last is not None else first],
             device=keys.device,
         )
@@ -407,7 +411,8 @@ def _common_prefix(keys: wp.array(dtype=wp.int64), count: int, i: int, j: int) -
 @wp.kernel(enable_backward=False)
 def _link_radix_tree(
     keys: wp.array(dtype=wp.int64),
-    count: int,
+    count_array: wp.array(dtype=wp.int32),
+    capacity: int,
     parent: wp.array(dtype=wp.int32),
     left: wp.array(dtype=wp.int32),
     right: wp.array(dtype=wp.int32),
@@ -416,6 +421,9 @@ def _link_radix_tree(
     last: wp.array(dtype=wp.int32),
 ):
     i = wp.tid()
+    count = wp.min(count_array[0], capacity)
+    if i >= count - 1:
+        return
     # direction of the node's range, and the prefix its range must exceed
     d = int(1)
     if _common_prefix(keys, count, i, i + 1) < _common_prefix(keys, count, i, i - 1):

@@ -42,6 +42,16 @@ class StageClock:
         if name not in self._recorded:
             self._recorded.append(name)
 
+    @property
+    def recorded(self) -> list[str]:
+        return self._recorded
+
+    def replayed(self, names: list[str]) -> None:
+        """Stages whose events a replayed CUDA graph recorded (the events are the ones captured)."""
+        for name in names:
+            if name not in self._recorded:
+                self._recorded.append(name)
+
     def times_ms(self) -> dict[str, float]:
         """Each recorded stage's time; on CUDA this waits for the last stage's end event only (not the
         whole device, where other objects' work may be queued)."""

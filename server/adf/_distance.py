@@ -99,11 +99,13 @@ class CornerField:
     def __init__(self, buffers: DeviceBuffers):
         self.buffers = buffers
         self.device = buffers.device
-        self.count = 0
         self.value: wp.array | None = None
         self.leaf: wp.array | None = None
         self.coherent = False  # whether the last compute started from last frame's faces
-        self._previous_count = 0
+        self._previous_capacity = 0
+        self._previous_count = buffers.ensure("corner.prev_count", 1, wp.int32)
+        self._next_count = buffers.ensure("corner.next_count", 1, wp.int32)
+        self._next = None
         self._previous_keys = buffers.ensure("corner.prev_keys", 1, wp.int64)
         self._previous_face = buffers.ensure("corner.prev_face", 1, wp.int32)
         self._previous_centre: np.ndarray | None = None
@@ -111,14 +113,17 @@ class CornerField:
         self.split: SearchSplit | None = None  # None: SearchSplit.automatic for each compute
         self._last_split = _WHOLE
 
-    def compute(self, corner_keys: wp.array, count: int, bvh: BvhView, cuts, sign: SignView,
-                centre: np.ndarray, side: float, depth: int, band: float | None, *, coherent: bool) -> None:
-        """Distances at the `count` corners (lattice keys) of the domain (centre, side), local coordinates;
-        `cuts(levels)` gives the BVH's cut that many levels deep (Bvh.cut)."""
+    def compute(self, corner_keys: wp.array, count: wp.array, capacity: int, expected_count: int, bvh: BvhView, cuts,
+                sign: SignView, centre: np.ndarray, side: float, depth: int, band: float | None, *,
+                coherent: bool) -> None:
+        """Distances at the corners (lattice keys, the first count[0] of at most `capacity`) of the domain
+        (centre, side), in local coordinates. The count stays on the device; `expected_count` (this frame's
+        or last frame's) only chooses how long searches are shared out. `cuts(levels)` gives the BVH's cut
+        that many levels deep (Bvh.cut)."""
         b = self.buffers
-        self.value = b.ensure("corner.value", count, wp.float32)
-        self.leaf = b.ensure("corner.leaf", count, wp.int32)
-        use_previous = coherent and self._previous_count > 0
+        self.value = b.ensure("corner.value", capacity, wp.float32)
+        self.leaf = b.ensure("corner.leaf", capacity, wp.int32)
+        use_previous = coherent and self._previous_capacity > 0
         cell = side / float(1 << depth)
         previous_origin = wp.vec3(0.0, 0.0, 0.0)
         previous_cell = cell
@@ -128,22 +133,22 @@ class CornerField:
             previous_cell = self._previous_side / float(1 << depth)
         half = side / 2.0
         origin = wp.vec3(-half, -half, -half)
-        split = self.split or SearchSplit.automatic(self.device, count)
+        split = self.planned_split(expected_count, bvh.internal_count)
         self._last_split = split
-        splitting = split.budget > 0 and bvh.internal_count > 0
-        capacity = count if splitting else 1
+        splitting = split.budget > 0
         long_count = b.ensure("corner.long_count", 1, wp.int32)
-        long_corner = b.ensure("corner.long_corner", capacity, wp.int32)
-        long_bound = b.ensure("corner.long_bound", capacity, wp.float32)
-        long_best = b.ensure("corner.long_best", capacity, wp.int64)
+        long_corner = b.ensure("corner.long_corner", capacity if splitting else 1, wp.int32)
+        long_bound = b.ensure("corner.long_bound", capacity if splitting else 1, wp.float32)
+        long_best = b.ensure("corner.long_best", capacity if splitting else 1, wp.int64)
         if splitting:
             long_count.zero_()
         wp.launch(
             corner_searches,
-            dim=count,
-            inputs=[corner_keys, origin, cell, 1.0 / side, depth, bvh, band or 0.0, 1 if use_previous else 0,
-                    self._previous_keys, self._previous_face, self._previous_count, previous_origin,
-                    1.0 / previous_cell, split.budget if splitting else UNLIMITED_VISITS],
+            dim=capacity,
+            inputs=[corner_keys, count, capacity, origin, cell, 1.0 / side, depth, bvh, band or 0.0,
+                    1 if use_previous else 0, self._previous_keys, self._previous_face, self._previous_count,
+                    self._previous_capacity, previous_origin, 1.0 / previous_cell,
+                    split.budget if splitting else UNLIMITED_VISITS],
             outputs=[self.value, self.leaf, long_count, long_corner, long_bound, long_best],
             device=self.device,
         )
@@ -155,18 +160,41 @@ class CornerField:
                       outputs=[long_best], device=self.device)
             wp.launch(_gather_split, dim=split.groups, inputs=[split.groups, long_count, long_corner, long_best],
                       outputs=[self.value, self.leaf], device=self.device)
-        wp.launch(sign_kernel(sign.method), dim=count, inputs=[corner_keys, origin, cell, bvh, sign],
+        wp.launch(sign_kernel(sign.method), dim=capacity, inputs=[corner_keys, count, capacity, origin, cell, bvh, sign],
                   outputs=[self.value, self.leaf], device=self.device)
-        self.count = count
         self.coherent = use_previous
-        # keep this frame's corners and their nearest faces for the next one
-        self._previous_keys = b.ensure("corner.prev_keys", count, wp.int64)
-        self._previous_face = b.ensure("corner.prev_face", count, wp.int32)
-        wp.copy(self._previous_keys, corner_keys, count=count)
-        wp.launch(_leaf_faces, dim=count, inputs=[self.leaf, bvh], outputs=[self._previous_face], device=self.device)
-        self._previous_count = count
-        self._previous_centre = np.asarray(centre, dtype=np.float64).copy()
-        self._previous_side = side
+        # this frame's corners and their nearest faces, for the next frame once this one is kept (the keys
+        # past the count are UNLISTED, after every lattice key, so a binary search over them needs no count)
+        next_keys = b.ensure("corner.next_keys", capacity, wp.int64)
+        next_face = b.ensure("corner.next_face", capacity, wp.int32)
+        wp.copy(next_keys, corner_keys, count=capacity)
+        wp.copy(self._next_count, count, count=1)
+        wp.launch(_leaf_faces, dim=capacity, inputs=[self.leaf, count, capacity, bvh], outputs=[next_face],
+                  device=self.device)
+        self._next = (next_keys, next_face, capacity, np.asarray(centre, dtype=np.float64).copy(), side)
+
+    def keep_frame(self) -> None:
+        """Make the last computed frame's faces the next frame's starting bounds. A frame that outgrew its
+        planned sizes is not kept: the frame run again in its place starts from the same bounds, so its
+        answer (down to which of two equally near faces is named) does not depend on the failed run."""
+        next_keys, next_face, capacity, centre, side = self._next
+        b = self.buffers
+        self._previous_keys = b.ensure("corner.prev_keys", capacity, wp.int64)
+        self._previous_face = b.ensure("corner.prev_face", capacity, wp.int32)
+        wp.copy(self._previous_keys, next_keys, count=capacity)
+        wp.copy(self._previous_face, next_face, count=capacity)
+        wp.copy(self._previous_count, self._next_count, count=1)
+        self._previous_capacity, self._previous_centre, self._previous_side = capacity, centre, side
+
+    def planned_split(self, expected_count: int, internal_count: int) -> SearchSplit:
+        """The split `compute` will use for this many corners (its override, else the automatic choice)."""
+        split = self.split or SearchSplit.automatic(self.device, expected_count)
+        return split if internal_count > 0 else _WHOLE
+
+    def coherence_key(self) -> tuple:
+        """What `compute` takes by value from last frame (for reusing a captured frame)."""
+        centre = None if self._previous_centre is None else tuple(self._previous_centre)
+        return self._previous_capacity, centre, self._previous_side
 
     @property
     def search_budget(self) -> int:
@@ -250,9 +278,11 @@ def _search_sorted(keys: wp.array(dtype=wp.int64), count: int, key: wp.int64) ->
 
 
 @wp.kernel(enable_backward=False)
-def _leaf_faces(leaf: wp.array(dtype=wp.int32), bvh: BvhView, face: wp.array(dtype=wp.int32)):
+def _leaf_faces(leaf: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), capacity: int, bvh: BvhView,
+                face: wp.array(dtype=wp.int32)):
     i = wp.tid()
-    face[i] = bvh.leaf_face[leaf[i]]
+    if i < wp.min(count[0], capacity):
+        face[i] = bvh.leaf_face[leaf[i]]
 
 
 _KERNELS: dict[tuple[str, int], wp.Kernel] = {}
@@ -293,6 +323,8 @@ def _lattice_point(key: wp.int64, origin: wp.vec3, cell: float) -> wp.vec3:
 @wp.kernel(enable_backward=False)
 def corner_searches(
     corner_keys: wp.array(dtype=wp.int64),
+    count: wp.array(dtype=wp.int32),
+    capacity: int,
     origin: wp.vec3,
     cell: float,
     inv_side: float,
@@ -302,7 +334,8 @@ def corner_searches(
     coherent: int,
     previous_keys: wp.array(dtype=wp.int64),
     previous_face: wp.array(dtype=wp.int32),
-    previous_count: int,
+    previous_count: wp.array(dtype=wp.int32),
+    previous_capacity: int,
     previous_origin: wp.vec3,
     previous_inv_cell: float,
     budget: int,
@@ -322,6 +355,8 @@ def corner_searches(
     took 3.13 ms there, against 3.35 ms for the combined kernel earlier that day.
     """
     i = wp.tid()
+    if i >= wp.min(count[0], capacity):
+        return
     p = _lattice_point(corner_keys[i], origin, cell)
     seed = int(-1)
     if coherent != 0:
@@ -334,7 +369,8 @@ def corner_searches(
             wp.clamp(int(wp.round(q[1])), 0, top),
             wp.clamp(int(wp.round(q[2])), 0, top),
         )
-        slot = wp.min(_search_sorted(previous_keys, previous_count, previous_key), previous_count - 1)
+        listed = wp.min(previous_count[0], previous_capacity)
+        slot = wp.min(_search_sorted(previous_keys, listed, previous_key), listed - 1)
         seed = bvh.face_leaf[previous_face[slot]]
     else:
         seed = spatial_seed(bvh, p, origin, inv_side)
@@ -407,6 +443,8 @@ def _make_sign_kernel(method: int) -> wp.Kernel:
 
     def sign_corners(
         corner_keys: wp.array(dtype=wp.int64),
+        count: wp.array(dtype=wp.int32),
+        capacity: int,
         origin: wp.vec3,
         cell: float,
         bvh: BvhView,
@@ -416,6 +454,8 @@ def _make_sign_kernel(method: int) -> wp.Kernel:
     ):
         """Sign each corner's distance; where nothing lay within the band, the seed becomes its leaf."""
         i = wp.tid()
+        if i >= wp.min(count[0], capacity):
+            return
         leaf = nearest[i]
         if leaf < 0:
             nearest[i] = -1 - leaf

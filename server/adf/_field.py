@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import threading
 import time
@@ -135,6 +136,8 @@ class _Counters:
     query_points: int = 0
     last_query_ms: float = 0.0
     last_update_wall_ms: float = 0.0
+    replans: int = 0  # planned frames that outgrew their sizes and were measured again
+    graph_captures: int = 0
 
 
 class DistanceField:
@@ -206,6 +209,14 @@ class DistanceField:
         self._faces = b.array("mesh.faces", len(f), wp.vec3i)
         self._faces.assign(f)
         self._clock = StageClock(self._device)
+        self._stream = wp.Stream(self._device) if self._device.is_cuda else None
+        # the frame's counts, copied to the host at its end (pinned, so the copy can be part of a graph)
+        self._report = wp.zeros(64, dtype=wp.int32, device="cpu", pinned=self._device.is_cuda)
+        self._report_sizes: list[int] = []
+        self._planned = False  # whether the next frame on the same domain may be planned
+        self._graph = None  # (key, graph, stage names, report sizes) of the captured planned frame
+        self._graph_candidate = None  # key of the last planned frame run eagerly
+        self.use_graphs = True
         self._bvh = Bvh(len(f), with_moments=self._sign != "none", buffers=b)
         self._octree = Octree(self._depth, self._refine, self._halo, b)
         self._octree.surface_area = area
@@ -384,6 +395,8 @@ class DistanceField:
             "last_query_ms": round(c.last_query_ms, 4),
             "updates": c.updates,
             "domain_moves": c.domain_moves,
+            "replans": c.replans,
+            "graph_captures": c.graph_captures,
             "queries": c.queries,
             "query_points": c.query_points,
             "device_bytes": self._buffers.nbytes(),
@@ -393,28 +406,121 @@ class DistanceField:
     # -- the pipeline ---------------------------------------------------------------------------------
     def _apply(self, local_vertices: np.ndarray, extent: float, *, domain_moved: bool) -> None:
         """Upload a frame and rebuild the field: refit (or rebuild, when the domain moved), sign data,
-        octree, corners, corner distances."""
+        octree, corners, corner distances.
+
+        A frame is planned when the last one was measured or planned on the same domain: its buffers keep
+        last frame's sizes with headroom and nothing is read back until the end, when the frame's counts
+        are checked against them; a frame that outgrew them is run again, measured. On CUDA a planned frame
+        is replayed from a CUDA graph, captured from an identical planned frame (same sizes, domain and
+        settings), so it costs one launch. Each object runs its frames on a stream of its own: the graph
+        holds the sort's scratch memory, which Warp keeps per stream and another object's larger sort
+        would otherwise reallocate.
+        """
         wall = time.perf_counter()
         clock = self._clock
         clock.reset()
-        origin, side = self._domain.origin, self._domain.side
-        with wp.ScopedDevice(self._device), clock.stage("total"):
+        stream = wp.ScopedStream(self._stream) if self._stream is not None else contextlib.nullcontext()
+        with wp.ScopedDevice(self._device), stream, clock.stage("total"):
             with clock.stage("upload"):
                 wp.copy(self._vertices, wp.array(local_vertices, dtype=wp.vec3, device="cpu", copy=False))
-            if domain_moved:
-                with clock.stage("bvh_build"):
-                    self._bvh.build(self._vertices, self._faces, origin, side)
-            with clock.stage("refit"):
-                self._bvh.refit(self._vertices, self._faces)
-            with clock.stage("normals"):
-                self._normals.update(self._vertices)
-                self._normals.choose_frame_method(self._octree.host, extent)
-            self._octree.build(self._vertices, self._faces, self._face_count, origin, side, clock)
-            with clock.stage("distances"):
-                self._corners.compute(self._octree.corner_keys, self._octree.corner_count, self._bvh.view(),
-                                      self._bvh.cut, self._normals.view(), self._domain.centre, side, self._depth, self._band,
-                                      coherent=self._coherence)
+                self._normals.upload_extent(extent)
+            fits = False
+            if self._planned and not domain_moved:
+                self._run_planned()
+                fits = self._take_report()
+                if not fits:
+                    self._counters.replans += 1
+            if not fits:
+                self._graph = None
+                self._pipeline(measure=True, domain_moved=domain_moved)
+                self._take_report()
+                self._planned = True
+            self._corners.keep_frame()
         self._counters.last_update_wall_ms = (time.perf_counter() - wall) * 1e3
+
+    def _pipeline(self, *, measure: bool, domain_moved: bool = False) -> None:
+        """Queue one frame's kernels (measuring reads sizes back on the way) and its report."""
+        clock = self._clock
+        origin, side = self._domain.origin, self._domain.side
+        if domain_moved:
+            with clock.stage("bvh_build"):
+                self._bvh.build(self._vertices, self._faces, origin, side)
+        with clock.stage("refit"):
+            self._bvh.refit(self._vertices, self._faces)
+        with clock.stage("normals"):
+            self._normals.update(self._vertices)
+        o = self._octree
+        o.build(self._vertices, self._faces, self._face_count, origin, side, clock, measure=measure)
+        with clock.stage("distances"):
+            self._corners.compute(o.corner_keys, o.corner_set.view.count, o.corner_capacity, o.corner_count,
+                                  self._bvh.view(), self._bvh.cut, self._normals.view(), self._domain.centre, side,
+                                  self._depth, self._band, coherent=self._coherence)
+        self._report_sizes = self._queue_report()
+
+    def _run_planned(self) -> None:
+        """A planned frame: eagerly on the CPU, or the first time with these sizes; else from a graph."""
+        split = self._corners.planned_split(self._octree.corner_count, self._bvh.internal_count)
+        key = self._plan_key(split)
+        if not (self._device.is_cuda and self.use_graphs):
+            self._pipeline(measure=False)
+            return
+        if self._graph is not None and self._graph[0] == key:
+            _, graph, stages, sizes = self._graph
+            wp.capture_launch(graph)
+            self._clock.replayed(stages)
+            self._report_sizes = sizes
+            return
+        if self._graph_candidate != key:
+            # run it once eagerly: any buffer (and the sort's scratch) that must grow does so outside a capture
+            self._graph_candidate = key
+            self._graph = None
+            self._pipeline(measure=False)
+            return
+        if split.budget > 0:
+            self._bvh.cut(split.levels)  # computed before the capture, kept until the next BVH build
+        stages_before = list(self._clock.recorded)
+        wp.capture_begin(self._device, stream=self._stream, force_module_load=False)
+        try:
+            self._pipeline(measure=False)
+        finally:
+            graph = wp.capture_end(self._device, stream=self._stream)
+        stages = [name for name in self._clock.recorded if name not in stages_before]
+        self._graph = (key, graph, stages, self._report_sizes)
+        self._counters.graph_captures += 1
+        wp.capture_launch(graph)
+
+    def _plan_key(self, split) -> tuple:
+        """Everything a planned frame's launches take by value; a graph is replayed only for an equal key."""
+        o, c = self._octree, self._corners
+        return (
+            o.surface_set.planned, o.halo_set.planned, o.node_capacity, o.internal_capacity, o.corner_set.planned,
+            tuple(self._domain.centre), self._domain.side, c.coherence_key(), (split.budget, split.levels, split.groups),
+        )
+
+    def _queue_report(self) -> list[int]:
+        """Queue copies of the frame's counts to the host; returns the capacity each must fit."""
+        sizes = []
+        k = 0
+        for array, index, capacity in self._octree.report():
+            wp.copy(self._report, array, dest_offset=k, src_offset=index, count=1)
+            sizes.append(capacity)
+            k += 1
+        wp.copy(self._report, self._normals.winding_frame, dest_offset=k, count=1)
+        wp.copy(self._report, self._octree.level_counts_array, dest_offset=k + 1, count=self._depth + 1)
+        return sizes
+
+    def _take_report(self) -> bool:
+        """Wait for the frame and read its counts; whether every one fitted its capacity."""
+        if self._device.is_cuda:
+            wp.synchronize_stream(self._stream)
+        report = self._report.numpy()
+        k = len(self._report_sizes)
+        counts = [int(x) for x in report[:k]]
+        if any(count > capacity for count, capacity in zip(counts, self._report_sizes)):
+            return False
+        self._octree.take_counts(counts, report[k + 1 : k + 2 + self._depth])
+        self._normals.set_frame_method(int(report[k]))
+        return True
 
     # -- for tests and tools --------------------------------------------------------------------------
     @_on_device

@@ -2,8 +2,14 @@
 
 Open addressing with linear probing; a thread whose compare-and-swap claims an empty slot appends the key
 (and the slot) to a compact list with an atomic counter, so the distinct keys come out without sorting all
-the duplicates. The table is sized from an expected count (last frame's, for a deforming mesh) at load at
-most 1/2; if more keys arrive than the list holds, `insert_all` grows the table and runs the pass again.
+the duplicates. The table is sized from an expected count at load at most 1/2.
+
+Two ways to run a pass (see `insert_all`): measuring, which reads the count back and, if more keys arrived
+than the list holds, grows the table and runs the pass again; or planned, which reads nothing, so a frame
+can run without waiting on the host (and be captured as a CUDA graph): the count stays on the device,
+every later kernel clips it to the list's capacity, and the frame's owner checks it once at the end.
+The list beyond the count holds UNLISTED, which sorts after every key, so the whole list can be sorted
+without knowing the count.
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ import warp as wp
 from badf.server.adf._buffers import DeviceBuffers
 
 EMPTY = wp.constant(wp.int64(-1))
+UNLISTED = (1 << 62) - 1  # every bit a sorted key range can use (keys stay below 2^62) is set
 _MIN_CAPACITY = 1024
 
 
@@ -38,6 +45,12 @@ def _hash(key: wp.int64) -> wp.uint64:
 
 
 @wp.func
+def listed_count(table: HashSetView) -> int:
+    """How many keys the list holds (the count clipped to the list's capacity)."""
+    return wp.min(table.count[0], table.list_capacity)
+
+
+@wp.func
 def set_insert(table: HashSetView, key: wp.int64) -> int:
     """Insert key; returns its table slot, or -1 when the table is full."""
     slot = int(_hash(key) & wp.uint64(table.mask))
@@ -58,33 +71,41 @@ def set_insert(table: HashSetView, key: wp.int64) -> int:
 class HashSet:
     """Device buffers of one hash set, reused from frame to frame."""
 
-    def __init__(self, name: str, buffers: DeviceBuffers, host_counts):
+    def __init__(self, name: str, buffers: DeviceBuffers, host_counts, *, label: str):
+        """`name` names the table and list buffers, which sets alive at different times may share; `label`
+        names this set's count, which is read at the end of the frame."""
         self.name = name
+        self.label = label
         self.buffers = buffers
         self.device = buffers.device
         self.host = host_counts
-        self.expected = 0
-        self.count = 0
+        self.planned = 0  # the expected count of planned passes
         self._view: HashSetView | None = None
 
-    def insert_all(self, expected: int, launch: Callable[[HashSetView], None]) -> int:
-        """Clear, run `launch(view)` (which inserts), and repeat with a larger table until the list held
-        every distinct key; returns how many there are. `expected` sizes the first try."""
-        expected = max(expected, self.expected, 1)
+    def insert_all(self, expected: int, launch: Callable[[HashSetView], None], *, measure: bool) -> int | None:
+        """Clear and run `launch(view)`, which inserts.
+
+        Measuring: `expected` sizes the first try; the count is read back, and the pass repeated with a
+        larger table until the list held every distinct key; returns the count and plans later passes
+        for it with headroom. Planned: the table is sized for the plan, nothing is read, returns None.
+        """
+        if not measure:
+            self._reset(self.planned)
+            launch(self._view)
+            return None
+        expected = max(expected, 1)
         while True:
             view = self._reset(expected)
             launch(view)
             count = self.host.read(view.count, 0)
             if count <= view.list_capacity:
-                self.count = count
-                # the next frame starts from this size, shrinking slowly if it falls
-                self.expected = max(count, self.expected // 2)
+                self.planned = with_headroom(count)
                 return count
             expected = 2 * max(count, expected)
 
     def _reset(self, expected: int) -> HashSetView:
         capacity = _MIN_CAPACITY
-        while capacity < 2 * expected:
+        while capacity < 2 * max(expected, 1):
             capacity *= 2
         b = self.buffers
         view = HashSetView()
@@ -94,8 +115,9 @@ class HashSet:
         view.list_capacity = capacity // 2
         # listed keys and slots are sorted afterwards: radix_sort_pairs needs twice the room
         view.listed_keys = b.ensure(self.name + ".keys", capacity, wp.int64)
+        view.listed_keys.fill_(UNLISTED)
         view.listed_slots = b.ensure(self.name + ".slots", capacity, wp.int32)
-        view.count = b.ensure(self.name + ".count", 1, wp.int32)
+        view.count = b.ensure(f"{self.name}.count.{self.label}", 1, wp.int32)
         view.count.zero_()
         self._view = view
         return view
@@ -104,8 +126,17 @@ class HashSet:
     def view(self) -> HashSetView:
         return self._view
 
+    @property
+    def list_capacity(self) -> int:
+        return self._view.list_capacity
+
     def sort_listed(self, begin_bit: int, end_bit: int) -> tuple[wp.array, wp.array]:
-        """Sort the listed keys (with their slots); returns (keys, slots), `count` long."""
+        """Sort the whole list (with the slots): the listed keys in order, then UNLISTED; (keys, slots)."""
         v = self._view
-        wp.utils.radix_sort_pairs(v.listed_keys, v.listed_slots, self.count, begin_bit=begin_bit, end_bit=end_bit)
+        wp.utils.radix_sort_pairs(v.listed_keys, v.listed_slots, v.list_capacity, begin_bit=begin_bit, end_bit=end_bit)
         return v.listed_keys, v.listed_slots
+
+
+def with_headroom(count: int) -> int:
+    """The capacity planned for a count measured once, so frames that grow a little still fit."""
+    return count + count // 4 + 16

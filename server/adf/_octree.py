@@ -27,7 +27,7 @@ import warp as wp
 
 from badf.server.adf._buffers import DeviceBuffers, HostReadback
 from badf.server.adf._bvh import link_radix_tree
-from badf.server.adf._hashset import HashSet, HashSetView, set_insert
+from badf.server.adf._hashset import UNLISTED, HashSet, HashSetView, listed_count, set_insert, with_headroom
 from badf.server.adf._geometry import KEY_TOP_BIT, morton3, morton3_decode, popcount, quantize, triangle_overlaps_cube
 from badf.server.adf._tolerances import CELL_OVERLAP_SLACK
 
@@ -52,7 +52,13 @@ class OctreeView:
 
 
 class Octree:
-    """Owns one object's octree buffers; `build` remakes the tree for the current vertices."""
+    """Owns one object's octree buffers; `build` remakes the tree for the current vertices.
+
+    Its sizes vary from frame to frame. A measuring build reads each back as it goes (four read-backs)
+    and sizes the buffers for it with headroom; a planned build reads nothing and runs every kernel over
+    the planned capacities, each clipping the counts it reads on the device, so a frame can be captured
+    as a CUDA graph. `counts` holds what a planned build found; `fits` says whether the plan held it.
+    """
 
     def __init__(self, depth: int, refine: Refinement, halo: int, buffers: DeviceBuffers):
         self.depth = depth
@@ -62,31 +68,63 @@ class Octree:
         self.device = buffers.device
         self.host = HostReadback(self.device)
         # the corner set reuses the surface set's buffers: the surface cells are dead by the corner stage
-        self.surface_set = HashSet("oct.set_a", buffers, self.host)
-        self.halo_set = HashSet("oct.set_b", buffers, self.host)
-        self.corner_set = HashSet("oct.set_a", buffers, self.host)
+        self.surface_set = HashSet("oct.set_a", buffers, self.host, label="surface")
+        self.halo_set = HashSet("oct.set_b", buffers, self.host, label="halo")
+        self.corner_set = HashSet("oct.set_a", buffers, self.host, label="corners")
         self.surface_area = 0.0  # set by the owner: sizes the first frame's surface-cell set
-        # filled by build()
-        self.surface_cell_count = 0  # unique finest cells holding surface
+        # planned capacities (set by a measuring build)
+        self.node_capacity = 0
+        self.internal_capacity = 0
+        # counts of the last build: a measuring build sets them, a planned one through `take_counts`
+        self.surface_cell_count = 0  # unique finest cells holding surface (and halo)
         self.node_count = 0
         self.internal_count = 0
         self.level_counts = np.zeros(depth + 1, dtype=np.int64)
         self.corner_candidate_count = 0
         self.corner_count = 0
+        # device results, filled by build()
+        self.cell_count: wp.array | None = None  # (1,) distinct cells (raw: may exceed the list's capacity)
+        self.totals = buffers.ensure("oct.totals", 2, wp.int32)  # octree nodes, internal nodes
+        self.level_counts_array: wp.array | None = None  # (depth + 1,) octree nodes per level
         self.corner_keys: wp.array | None = None
         self.corner_slot: wp.array | None = None
         self.child_mask: wp.array | None = None
         self.first_child: wp.array | None = None
         self.node_keys: wp.array | None = None
 
-    def build(self, vertices: wp.array, faces: wp.array, face_count: int, origin: wp.vec3, side: float, clock) -> None:
+    def build(self, vertices: wp.array, faces: wp.array, face_count: int, origin: wp.vec3, side: float, clock,
+              *, measure: bool) -> None:
         with clock.stage("surface_cells"):
-            cell_keys = self._surface_cells(vertices, faces, face_count, origin, side)
+            cell_keys = self._surface_cells(vertices, faces, face_count, origin, side, measure)
         with clock.stage("octree"):
-            self._octree_nodes(cell_keys)
+            self._octree_nodes(cell_keys, measure)
             self._link_children()
         with clock.stage("corners"):
-            self._corners()
+            self._corners(measure)
+
+    @property
+    def cell_set(self) -> HashSet:
+        return self.halo_set if self.halo > 0 else self.surface_set
+
+    @property
+    def corner_capacity(self) -> int:
+        return self.corner_set.list_capacity
+
+    def report(self) -> list[tuple[wp.array, int, int]]:
+        """(device count, index, capacity) of each size a planned build must fit, for the frame's report."""
+        out = [(self.surface_set.view.count, 0, self.surface_set.list_capacity)]
+        if self.halo > 0:
+            out.append((self.halo_set.view.count, 0, self.halo_set.list_capacity))
+        out += [(self.totals, 0, self.node_capacity), (self.totals, 1, self.internal_capacity),
+                (self.corner_set.view.count, 0, self.corner_set.list_capacity)]
+        return out
+
+    def take_counts(self, counts: list[int], level_counts: np.ndarray) -> None:
+        """Record the counts a planned build found (in the order of `report`)."""
+        self.surface_cell_count = counts[1] if self.halo > 0 else counts[0]
+        self.node_count, self.internal_count, self.corner_count = counts[-3], counts[-2], counts[-1]
+        self.level_counts = level_counts.astype(np.int64)
+        self.corner_candidate_count = 27 * self.internal_count
 
     def view(self, origin: wp.vec3, side: float) -> OctreeView:
         v = OctreeView()
@@ -99,7 +137,7 @@ class Octree:
         return v
 
     # -- stage 1: surface cells -------------------------------------------------------------------------
-    def _surface_cells(self, vertices, faces, face_count: int, origin: wp.vec3, side: float) -> wp.array:
+    def _surface_cells(self, vertices, faces, face_count: int, origin: wp.vec3, side: float, measure: bool) -> wp.array:
         d = self.depth
         resolution = 1 << d
         cell = side / resolution
@@ -113,83 +151,96 @@ class Octree:
             expected,
             lambda table: wp.launch(kernel, dim=face_count, inputs=[vertices, faces, origin, cell, resolution, shift, table],
                                     device=self.device),
+            measure=measure,
         )
-        cells = self.surface_set
         if self.halo > 0:
-            listed = self.surface_set.view.listed_keys
+            surface = self.surface_set.view
             width = 2 * self.halo + 1
-            grown = count * width**3
+            grown = surface.list_capacity * width**3
             count = self.halo_set.insert_all(
-                3 * count,  # a sheet of cells one thick grows to about three
-                lambda table: wp.launch(_insert_halo_cells, dim=grown, inputs=[listed, self.halo, resolution, shift, table],
+                3 * (count or 0),  # a sheet of cells one thick grows to about three
+                lambda table: wp.launch(_insert_halo_cells, dim=grown, inputs=[surface, self.halo, resolution, shift, table],
                                         device=self.device),
+                measure=measure,
             )
-            cells = self.halo_set
+        cells = self.cell_set
         keys, _ = cells.sort_listed(shift, KEY_TOP_BIT)
-        self.surface_cell_count = count
+        self.cell_count = cells.view.count
+        if measure:
+            self.surface_cell_count = count
         return keys
 
     # -- stage 2: Algorithm 1 over the radix tree of the cells ---------------------------------------------
-    def _octree_nodes(self, cell_keys: wp.array) -> None:
+    def _octree_nodes(self, cell_keys: wp.array, measure: bool) -> None:
         b, d = self.buffers, self.depth
-        n = self.surface_cell_count
-        tree_nodes = 2 * n - 1
+        capacity = self.cell_set.list_capacity
+        tree_nodes = 2 * capacity - 1
         parent = b.ensure("oct.tree.parent", tree_nodes, wp.int32)
-        left = b.ensure("oct.tree.left", max(n - 1, 1), wp.int32)
-        right = b.ensure("oct.tree.right", max(n - 1, 1), wp.int32)
-        first = b.ensure("oct.tree.first", max(n - 1, 1), wp.int32)
-        prefix = b.ensure("oct.tree.prefix", max(n - 1, 1), wp.int32)
-        link_radix_tree(cell_keys, n, parent, left, right, first, prefix)
+        left = b.ensure("oct.tree.left", capacity, wp.int32)
+        right = b.ensure("oct.tree.right", capacity, wp.int32)
+        first = b.ensure("oct.tree.first", capacity, wp.int32)
+        prefix = b.ensure("oct.tree.prefix", capacity, wp.int32)
+        link_radix_tree(cell_keys, self.cell_count, capacity, parent, left, right, first, prefix)
 
         counts = b.ensure("oct.edge_counts", tree_nodes, wp.int32)
         offsets = b.ensure("oct.edge_offsets", tree_nodes, wp.int32)
         level_counts = b.ensure("oct.level_counts", d + 1, wp.int32)
         level_counts.zero_()
-        wp.launch(_count_octree_nodes, dim=tree_nodes, inputs=[parent, prefix, n - 1, d],
+        self.level_counts_array = level_counts
+        wp.launch(_count_octree_nodes, dim=tree_nodes, inputs=[parent, prefix, self.cell_count, capacity, d],
                   outputs=[counts, level_counts], device=self.device)
         wp.utils.array_scan(counts[:tree_nodes], offsets[:tree_nodes], inclusive=False)
-        self.level_counts = self.host.read_array(level_counts, d + 1).astype(np.int64)
-        total = int(self.level_counts.sum())
-        node_keys = b.ensure("oct.node_keys", 2 * total, wp.int64)
-        scratch = b.ensure("oct.node_values", 2 * total, wp.int32)
-        wp.launch(_fill_octree_nodes, dim=tree_nodes, inputs=[cell_keys, parent, prefix, first, n - 1, d, offsets],
+        wp.launch(_octree_totals, dim=1, inputs=[level_counts, d], outputs=[self.totals], device=self.device)
+        if measure:
+            self.level_counts = self.host.read_array(level_counts, d + 1).astype(np.int64)
+            self.node_count = int(self.level_counts.sum())
+            self.internal_count = self.node_count - int(self.level_counts[d])
+            self.node_capacity = with_headroom(self.node_count)
+            self.internal_capacity = with_headroom(self.internal_count)
+        node_keys = b.ensure("oct.node_keys", 2 * self.node_capacity, wp.int64)
+        scratch = b.ensure("oct.node_values", 2 * self.node_capacity, wp.int32)
+        node_keys.fill_(UNLISTED)
+        wp.launch(_fill_octree_nodes, dim=tree_nodes,
+                  inputs=[cell_keys, parent, prefix, first, self.cell_count, capacity, d, offsets, self.node_capacity],
                   outputs=[node_keys], device=self.device)
-        wp.utils.radix_sort_pairs(node_keys, scratch, total, end_bit=LEVEL_SHIFT + 4)
+        wp.utils.radix_sort_pairs(node_keys, scratch, self.node_capacity, end_bit=LEVEL_SHIFT + 4)
         self.node_keys = node_keys
-        self.node_count = total
-        self.internal_count = total - int(self.level_counts[d])
 
     # -- stage 3: child masks and first children ----------------------------------------------------------
     def _link_children(self) -> None:
         b = self.buffers
-        total, internal = self.node_count, self.internal_count
-        flags = b.ensure("oct.first_child_flags", total, wp.int32)
-        scan = b.ensure("oct.first_child_scan", total, wp.int32)
+        nodes, internal = self.node_capacity, self.internal_capacity
+        flags = b.ensure("oct.first_child_flags", nodes, wp.int32)
+        scan = b.ensure("oct.first_child_scan", nodes, wp.int32)
         self.child_mask = b.ensure("oct.child_mask", internal, wp.int32)
         self.first_child = b.ensure("oct.first_child", internal, wp.int32)
         self.child_mask.zero_()
-        wp.launch(_mark_first_children, dim=total, inputs=[self.node_keys], outputs=[flags], device=self.device)
-        wp.utils.array_scan(flags[:total], scan[:total], inclusive=True)
-        if total > 1:
-            wp.launch(_link_children, dim=total - 1, inputs=[self.node_keys, flags, scan],
-                      outputs=[self.child_mask, self.first_child], device=self.device)
+        wp.launch(_mark_first_children, dim=nodes, inputs=[self.node_keys, self.totals], outputs=[flags],
+                  device=self.device)
+        wp.utils.array_scan(flags[:nodes], scan[:nodes], inclusive=True)
+        wp.launch(_link_children, dim=nodes, inputs=[self.node_keys, self.totals, flags, scan, internal],
+                  outputs=[self.child_mask, self.first_child], device=self.device)
 
     # -- stage 4: corners ---------------------------------------------------------------------------------
-    def _corners(self) -> None:
+    def _corners(self, measure: bool) -> None:
         b, d = self.buffers, self.depth
-        candidates = 27 * self.internal_count
+        candidates = 27 * self.internal_capacity
         self.corner_slot = b.ensure("oct.corner_slot", candidates, wp.int32)
         count = self.corner_set.insert_all(
             10 * self.internal_count,
-            lambda table: wp.launch(_insert_corners, dim=candidates, inputs=[self.node_keys, d, table],
+            lambda table: wp.launch(_insert_corners, dim=candidates, inputs=[self.node_keys, self.totals, d, table],
                                     outputs=[self.corner_slot], device=self.device),
+            measure=measure,
         )
         keys, slots = self.corner_set.sort_listed(0, 3 * (d + 1))
-        rank = b.ensure("oct.corner_rank", self.corner_set.view.mask + 1, wp.int32)
-        wp.launch(_rank_slots, dim=count, inputs=[slots], outputs=[rank], device=self.device)
-        wp.launch(_slots_to_ranks, dim=candidates, inputs=[rank], outputs=[self.corner_slot], device=self.device)
-        self.corner_candidate_count = candidates
-        self.corner_count = count
+        table = self.corner_set.view
+        rank = b.ensure("oct.corner_rank", table.mask + 1, wp.int32)
+        wp.launch(_rank_slots, dim=table.list_capacity, inputs=[slots, table], outputs=[rank], device=self.device)
+        wp.launch(_slots_to_ranks, dim=candidates, inputs=[rank, self.totals], outputs=[self.corner_slot],
+                  device=self.device)
+        if measure:
+            self.corner_candidate_count = 27 * self.internal_count
+            self.corner_count = count
         self.corner_keys = keys
 
 
@@ -234,13 +285,19 @@ def _tree_node_level(prefix: wp.array(dtype=wp.int32), node: int, internal_count
 def _count_octree_nodes(
     parent: wp.array(dtype=wp.int32),
     prefix: wp.array(dtype=wp.int32),
-    internal_count: int,
+    cell_count: wp.array(dtype=wp.int32),
+    cell_capacity: int,
     depth: int,
     counts: wp.array(dtype=wp.int32),
     level_counts: wp.array(dtype=wp.int32),
 ):
     # Algorithm 1: the edge (parent -> node) yields the octree nodes of the levels its prefix crosses.
     node = wp.tid()
+    cells = wp.min(cell_count[0], cell_capacity)
+    counts[node] = 0
+    if node >= 2 * cells - 1:
+        return
+    internal_count = cells - 1
     level = _tree_node_level(prefix, node, internal_count, depth)
     parent_level = _tree_node_level(prefix, parent[node], internal_count, depth)
     counts[node] = wp.max(level - parent_level, 0)
@@ -249,17 +306,32 @@ def _count_octree_nodes(
 
 
 @wp.kernel(enable_backward=False)
+def _octree_totals(level_counts: wp.array(dtype=wp.int32), depth: int, totals: wp.array(dtype=wp.int32)):
+    total = int(0)
+    for level in range(depth + 1):
+        total += level_counts[level]
+    totals[0] = total
+    totals[1] = total - level_counts[depth]
+
+
+@wp.kernel(enable_backward=False)
 def _fill_octree_nodes(
     cell_keys: wp.array(dtype=wp.int64),
     parent: wp.array(dtype=wp.int32),
     prefix: wp.array(dtype=wp.int32),
     first: wp.array(dtype=wp.int32),
-    internal_count: int,
+    cell_count: wp.array(dtype=wp.int32),
+    cell_capacity: int,
     depth: int,
     offsets: wp.array(dtype=wp.int32),
+    node_capacity: int,
     node_keys: wp.array(dtype=wp.int64),
 ):
     node = wp.tid()
+    cells = wp.min(cell_count[0], cell_capacity)
+    if node >= 2 * cells - 1:
+        return
+    internal_count = cells - 1
     level = _tree_node_level(prefix, node, internal_count, depth)
     parent_level = _tree_node_level(prefix, parent[node], internal_count, depth)
     leaf = node - internal_count
@@ -269,14 +341,17 @@ def _fill_octree_nodes(
     base = offsets[node]
     for lvl in range(parent_level + 1, level + 1):
         code = key >> wp.int64(KEY_TOP_BIT - 3 * lvl)
-        node_keys[base + lvl - parent_level - 1] = (wp.int64(lvl) << wp.int64(_LEVEL_SHIFT)) | code
+        index = base + lvl - parent_level - 1
+        if index < node_capacity:
+            node_keys[index] = (wp.int64(lvl) << wp.int64(_LEVEL_SHIFT)) | code
 
 
 @wp.kernel(enable_backward=False)
-def _mark_first_children(node_keys: wp.array(dtype=wp.int64), flags: wp.array(dtype=wp.int32)):
+def _mark_first_children(node_keys: wp.array(dtype=wp.int64), totals: wp.array(dtype=wp.int32),
+                         flags: wp.array(dtype=wp.int32)):
     j = wp.tid()
     flags[j] = 0
-    if j > 0:
+    if j > 0 and j < totals[0]:
         key = node_keys[j]
         previous = node_keys[j - 1]
         same_level = (key >> wp.int64(_LEVEL_SHIFT)) == (previous >> wp.int64(_LEVEL_SHIFT))
@@ -288,15 +363,21 @@ def _mark_first_children(node_keys: wp.array(dtype=wp.int64), flags: wp.array(dt
 @wp.kernel(enable_backward=False)
 def _link_children(
     node_keys: wp.array(dtype=wp.int64),
+    totals: wp.array(dtype=wp.int32),
     flags: wp.array(dtype=wp.int32),
     scan: wp.array(dtype=wp.int32),
+    internal_capacity: int,
     child_mask: wp.array(dtype=wp.int32),
     first_child: wp.array(dtype=wp.int32),
 ):
     # Every node above the finest level has a first child, and levels are laid out in order, so the
     # running count of first children up to node j, less one, is the index of j's parent.
-    j = wp.tid() + 1
+    j = wp.tid()
+    if j == 0 or j >= totals[0]:
+        return
     parent = scan[j] - 1
+    if parent >= internal_capacity:
+        return  # more nodes than planned: the frame is measured again
     octant = int(node_keys[j] & wp.int64(7))
     wp.atomic_or(child_mask, parent, 1 << octant)
     if flags[j] != 0:
@@ -351,7 +432,7 @@ def _insert_centroid_cells(
 
 @wp.kernel(enable_backward=False)
 def _insert_halo_cells(
-    cells: wp.array(dtype=wp.int64),
+    cells: HashSetView,
     halo: int,
     resolution: int,
     shift: int,
@@ -361,7 +442,9 @@ def _insert_halo_cells(
     i = wp.tid()
     width = 2 * halo + 1
     volume = width * width * width
-    cell = morton3_decode(cells[i // volume] >> wp.int64(shift))
+    if i // volume >= listed_count(cells):
+        return
+    cell = morton3_decode(cells.listed_keys[i // volume] >> wp.int64(shift))
     r = i % volume
     top = resolution - 1
     x = wp.clamp(cell[0] + r // (width * width) - halo, 0, top)
@@ -373,6 +456,7 @@ def _insert_halo_cells(
 @wp.kernel(enable_backward=False)
 def _insert_corners(
     node_keys: wp.array(dtype=wp.int64),
+    totals: wp.array(dtype=wp.int32),
     depth: int,
     table: HashSetView,
     corner_slot: wp.array(dtype=wp.int32),
@@ -380,6 +464,8 @@ def _insert_corners(
     # lattice point t (x, y, z in 0..2) of the children of internal node i // 27; its table slot for now
     i = wp.tid()
     node = i // 27
+    if node >= totals[1]:
+        return
     t = i - node * 27
     key = node_keys[node]
     level = int(key >> wp.int64(_LEVEL_SHIFT))
@@ -393,12 +479,16 @@ def _insert_corners(
 
 
 @wp.kernel(enable_backward=False)
-def _rank_slots(slots: wp.array(dtype=wp.int32), rank: wp.array(dtype=wp.int32)):
+def _rank_slots(slots: wp.array(dtype=wp.int32), table: HashSetView, rank: wp.array(dtype=wp.int32)):
     r = wp.tid()
-    rank[slots[r]] = r
+    if r < listed_count(table):
+        rank[slots[r]] = r
 
 
 @wp.kernel(enable_backward=False)
-def _slots_to_ranks(rank: wp.array(dtype=wp.int32), corner_slot: wp.array(dtype=wp.int32)):
+def _slots_to_ranks(rank: wp.array(dtype=wp.int32), totals: wp.array(dtype=wp.int32),
+                    corner_slot: wp.array(dtype=wp.int32)):
     i = wp.tid()
-    corner_slot[i] = rank[corner_slot[i]]
+    slot = corner_slot[i]
+    if i // 27 < totals[1] and slot >= 0:  # -1: the table was full, and the frame is measured again
+        corner_slot[i] = rank[slot]

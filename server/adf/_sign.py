@@ -27,6 +27,7 @@ SIGN_PSEUDONORMAL = 1
 SIGN_WINDING = 2
 _SIGN_CODES = {"none": SIGN_NONE, "pseudonormal": SIGN_PSEUDONORMAL, "winding": SIGN_WINDING}
 _DEGENERATE = wp.constant(DEGENERATE_AREA)
+_MIN_ENCLOSED = wp.constant(MIN_ENCLOSED_VOLUME)
 
 
 @dataclass(frozen=True)
@@ -140,6 +141,7 @@ class SignView:
     face_normal: wp.array(dtype=wp.vec3)  # unit, zero for a degenerate face
     vertex_normal: wp.array(dtype=wp.vec3)  # angle-weighted pseudonormal, unit or zero
     edge_normal: wp.array(dtype=wp.vec3)  # sum of the adjacent face normals, unit or zero
+    winding_frame: wp.array(dtype=wp.int32)  # (1,) nonzero: this frame encloses nothing, sign by winding
 
 
 class Pseudonormals:
@@ -176,9 +178,20 @@ class Pseudonormals:
         self.vertex_normal = b.array("sign.vertex_normal", self.vertex_count, wp.vec3)
         self.edge_normal = b.array("sign.edge_normal", self.edge_count + 1 if active else 1, wp.vec3)
         self.volume_area = b.array("sign.volume_area", 2, wp.float32)  # this frame's enclosed volume, area
-        self.frame_method = method  # what this frame uses: pseudonormal frames that enclose nothing use winding
+        self.extent = b.array("sign.extent", 1, wp.float32)  # this frame's largest bounding-box side
+        self.winding_frame = b.array("sign.winding_frame", 1, wp.int32)
+        self.frame_method = method  # what this frame used (set_frame_method): pseudonormal frames that enclose nothing use winding
+
+    def upload_extent(self, extent: float) -> None:
+        """The frame's extent, which the enclosed-volume test scales with (sent with the vertices)."""
+        if self.method == "pseudonormal":
+            self.extent.fill_(extent)
 
     def update(self, vertices: wp.array) -> None:
+        """This frame's normals, and whether it encloses volume (decided on the device, read with the report).
+
+        Pseudonormals hold only while the mesh encloses volume, outward: a frame collapsed flat or turned
+        inside out (its faces then coincide or face inwards) is signed by winding numbers instead."""
         if self.method != "pseudonormal":
             return
         self.volume_area.zero_()
@@ -189,20 +202,17 @@ class Pseudonormals:
                   outputs=[self.vertex_normal], device=self.device)
         wp.launch(_edge_normals, dim=self.edge_count + 1, inputs=[self.edge_face_start, self.edge_face, self.face_normal],
                   outputs=[self.edge_normal], device=self.device)
+        wp.launch(_choose_frame_method, dim=1, inputs=[self.volume_area, self.extent], outputs=[self.winding_frame],
+                  device=self.device)
 
-    def choose_frame_method(self, host, extent: float) -> str:
-        """Pseudonormals hold only while the mesh encloses volume, outward: a frame collapsed flat or turned
-        inside out (its faces then coincide or face inwards) is signed by winding numbers instead."""
-        self.frame_method = self.method
-        if self.method == "pseudonormal":
-            volume, area = host.read_floats(self.volume_area, 2)
-            if volume <= 0.0 or not encloses_volume(volume, area, extent):
-                self.frame_method = "winding"
-        return self.frame_method
+    def set_frame_method(self, winding_frame: int) -> None:
+        """Record what the last frame used, from its report."""
+        self.frame_method = "winding" if self.method == "pseudonormal" and winding_frame else self.method
 
     def view(self) -> SignView:
         v = SignView()
-        v.method = _SIGN_CODES[self.frame_method]
+        v.method = _SIGN_CODES[self.method]
+        v.winding_frame = self.winding_frame
         v.faces = self.welded_faces
         v.face_edge = self.face_edge
         v.face_normal = self.face_normal
@@ -230,12 +240,21 @@ def inside_by_winding(bvh: BvhView, p: wp.vec3) -> bool:
 @wp.func
 def inside_by_pseudonormal(sign: SignView, bvh: BvhView, p: wp.vec3, face: int, closest: wp.vec3, feature: int) -> bool:
     """By the pseudonormal of p's closest feature; by the winding number where there is none (face < 0:
-    nothing within the band) or it is degenerate, or p lies on the feature's tangent plane."""
-    if face >= 0:
+    nothing within the band) or it is degenerate, or p lies on the feature's tangent plane, and in a frame
+    that encloses no volume."""
+    if face >= 0 and sign.winding_frame[0] == 0:
         side = wp.dot(p - closest, feature_normal(sign, face, feature))
         if side != 0.0:
             return side < 0.0
     return inside_by_winding(bvh, p)
+
+
+@wp.kernel(enable_backward=False)
+def _choose_frame_method(volume_area: wp.array(dtype=wp.float32), extent: wp.array(dtype=wp.float32),
+                         winding_frame: wp.array(dtype=wp.int32)):
+    volume = volume_area[0]
+    encloses = wp.abs(volume) > _MIN_ENCLOSED * volume_area[1] * extent[0]
+    winding_frame[0] = wp.where(volume > 0.0 and encloses, 0, 1)
 
 
 @wp.kernel(enable_backward=False)
