@@ -289,12 +289,43 @@ def measure_kernels(vertices, faces, *, depth: int, device: str, repeat: int) ->
         "update_wall_ms": round(_median(walls), 4),
         "update_span_ms": round(_median(spans), 4),
         "busy_ms": round(_median(busy), 4),
-        "graph_update_wall_ms": round(_median(graph_walls[3:]), 4),
-        "graph_update_span_ms": round(_median(graph_spans[3:]), 4),
+        "graph_update_wall_ms": round(_median(graph_walls[3:] or graph_walls), 4),
+        "graph_update_span_ms": round(_median(graph_spans[3:] or graph_spans), 4),
         "graph_captures": field.stats()["graph_captures"],
         "launches_per_update": round(sum(r[1] for r in rows), 1),
         "activities": [{"name": n, "per_update": round(c, 2), "ms_per_update": round(t, 4)} for n, c, t in rows],
     }
+
+
+def measure_block_dims(vertices, faces, *, depth: int, device: str, repeat: int, dims=(32, 64, 128, 256)) -> dict:
+    """Device time of the corner searches and the corner signs for each threads-per-block choice (CUDA
+    activity timing over `repeat` coherent updates, kernels launched one by one)."""
+    import warp as wp
+    from badf.server.adf import DistanceField
+    from badf.server.adf import _distance
+
+    field = DistanceField(vertices, faces, depth=depth, device=device)
+    field.use_graphs = False
+    frames = [deform(vertices, 0.5 + 0.02 * k) for k in range(repeat + 1)]
+    default = (_distance.SEARCH_BLOCK_DIM, _distance.SIGN_BLOCK_DIM)
+    rows = []
+    try:
+        for dim in dims:
+            _distance.SEARCH_BLOCK_DIM = _distance.SIGN_BLOCK_DIM = dim
+            field.update(frames[0])
+            per_kernel: dict[str, list[float]] = {"searches": [], "signs": []}
+            for frame in frames[1:]:
+                wp.synchronize_device(device)
+                wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+                field.update(frame)
+                results = wp.timing_end()
+                per_kernel["searches"].append(sum(r.elapsed for r in results if "corner_searches" in r.name))
+                per_kernel["signs"].append(sum(r.elapsed for r in results if "sign_corners" in r.name))
+            rows.append({"block_dim": dim, "searches_ms": round(_median(per_kernel["searches"]), 4),
+                         "signs_ms": round(_median(per_kernel["signs"]), 4)})
+    finally:
+        _distance.SEARCH_BLOCK_DIM, _distance.SIGN_BLOCK_DIM = default
+    return {"depth": depth, "corners": field.stats()["counts"]["unique_corners"], "rows": rows}
 
 
 def print_kernels(profile: dict) -> None:
@@ -326,6 +357,12 @@ def run(args: argparse.Namespace) -> int:
     if args.kernels:
         profile = measure_kernels(vertices, faces, depth=args.depth, device=device, repeat=repeat)
         print_kernels(profile)
+        if args.block_sweep:
+            blocks = measure_block_dims(vertices, faces, depth=args.depth, device=device, repeat=repeat)
+            profile["block_dims"] = blocks
+            print_table(f"corner kernels by threads per block, depth {blocks['depth']}, {blocks['corners']} corners",
+                        ["block dim", "searches ms", "signs ms"],
+                        [[r["block_dim"], r["searches_ms"], r["signs_ms"]] for r in blocks["rows"]])
         if args.out:
             with open(args.out, "w") as f:
                 json.dump({"benchmark": "engine-kernels", "date": timestamp(), "device": bench_device_name(device),
@@ -409,6 +446,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="only time the corner stage with long searches shared out or not, at these depths")
     parser.add_argument("--kernels", action="store_true",
                         help="only profile a default update kernel by kernel (CUDA activity timing)")
+    parser.add_argument("--block-sweep", action="store_true",
+                        help="with --kernels: also time the corner kernels at 32, 64, 128 and 256 threads per block")
     parser.add_argument("--out", default=None, help="write the full results as JSON here")
 
 

@@ -47,6 +47,11 @@ _OUT_CLOSEST = wp.constant(OUT_CLOSEST)
 _OUT_NORMAL = wp.constant(OUT_NORMAL)
 _OUT_FACE = wp.constant(OUT_FACE)
 
+# Threads per block of the corner searches and the corner signs (each thread walks the BVH with a stack
+# of its own); `badf bench engine --block-sweep` times the choices.
+SEARCH_BLOCK_DIM = 256
+SIGN_BLOCK_DIM = 256
+
 # Seeds for the corner searches.
 SEED_SPATIAL = 0
 SEED_COHERENT = 1
@@ -151,6 +156,7 @@ class CornerField:
                     split.budget if splitting else UNLIMITED_VISITS],
             outputs=[self.value, self.leaf, long_count, long_corner, long_bound, long_best],
             device=self.device,
+            block_dim=SEARCH_BLOCK_DIM,
         )
         if splitting:
             ways = 1 << split.levels
@@ -161,7 +167,7 @@ class CornerField:
             wp.launch(_gather_split, dim=split.groups, inputs=[split.groups, long_count, long_corner, long_best],
                       outputs=[self.value, self.leaf], device=self.device)
         wp.launch(sign_kernel(sign.method), dim=capacity, inputs=[corner_keys, count, capacity, origin, cell, bvh, sign],
-                  outputs=[self.value, self.leaf], device=self.device)
+                  outputs=[self.value, self.leaf], device=self.device, block_dim=SIGN_BLOCK_DIM)
         self.coherent = use_previous
         # this frame's corners and their nearest faces, for the next frame once this one is kept (the keys
         # past the count are UNLISTED, after every lattice key, so a binary search over them needs no count)

@@ -239,7 +239,10 @@ class DistanceField:
         if moved:
             self._domain = _Domain.fit(lo, hi, previous=self._domain)
             self._counters.domain_moves += 1
-        self._apply(self._domain.to_local(v), float(np.max(hi - lo)), domain_moved=moved)
+        # float32 frames are recentred on the device (the same float32 subtraction, without numpy's slow
+        # (N, 3) broadcast); float64 ones on the host in float64, which keeps the precision far from the origin
+        self._apply(v if v.dtype == np.float32 else self._domain.to_local(v), float(np.max(hi - lo)),
+                    domain_moved=moved, recentre=v.dtype == np.float32)
         self._frame += 1
         self._counters.updates += 1
         return self._frame
@@ -404,7 +407,7 @@ class DistanceField:
         }
 
     # -- the pipeline ---------------------------------------------------------------------------------
-    def _apply(self, local_vertices: np.ndarray, extent: float, *, domain_moved: bool) -> None:
+    def _apply(self, local_vertices: np.ndarray, extent: float, *, domain_moved: bool, recentre: bool = False) -> None:
         """Upload a frame and rebuild the field: refit (or rebuild, when the domain moved), sign data,
         octree, corners, corner distances.
 
@@ -422,7 +425,14 @@ class DistanceField:
         stream = wp.ScopedStream(self._stream) if self._stream is not None else contextlib.nullcontext()
         with wp.ScopedDevice(self._device), stream, clock.stage("total"):
             with clock.stage("upload"):
-                wp.copy(self._vertices, wp.array(local_vertices, dtype=wp.vec3, device="cpu", copy=False))
+                host = wp.array(local_vertices, dtype=wp.vec3, device="cpu", copy=False)
+                if recentre:
+                    raw = self._buffers.ensure("mesh.frame", len(local_vertices), wp.vec3)
+                    wp.copy(raw, host)
+                    wp.launch(_recentre, dim=len(local_vertices), inputs=[raw, wp.vec3(*self._domain.centre)],
+                              outputs=[self._vertices])
+                else:
+                    wp.copy(self._vertices, host)
                 self._normals.upload_extent(extent)
             fits = False
             if self._planned and not domain_moved:
@@ -541,6 +551,12 @@ class DistanceField:
         keys = self._octree.node_keys.numpy()[: self._octree.node_count]
         levels = (keys >> 32).astype(np.int64)
         return levels, _decode_morton(keys & 0xFFFFFFFF).astype(np.int64)
+
+
+@wp.kernel(enable_backward=False)
+def _recentre(frame: wp.array(dtype=wp.vec3), centre: wp.vec3, local: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    local[i] = frame[i] - centre
 
 
 def bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
