@@ -213,6 +213,7 @@ class DistanceField:
         # the frame's counts, copied to the host at its end (pinned, so the copy can be part of a graph)
         self._report = wp.zeros(64, dtype=wp.int32, device="cpu", pinned=self._device.is_cuda)
         self._report_sizes: list[int] = []
+        self._staging = wp.empty(vertex_count, dtype=wp.vec3, device="cpu", pinned=self._device.is_cuda)
         self._planned = False  # whether the next frame on the same domain may be planned
         self._graph = None  # (key, graph, stage names, report sizes) of the captured planned frame
         self._graph_candidate = None  # key of the last planned frame run eagerly
@@ -425,7 +426,9 @@ class DistanceField:
         stream = wp.ScopedStream(self._stream) if self._stream is not None else contextlib.nullcontext()
         with wp.ScopedDevice(self._device), stream, clock.stage("total"):
             with clock.stage("upload"):
-                host = wp.array(local_vertices, dtype=wp.vec3, device="cpu", copy=False)
+                # through a pinned buffer, so the copy runs asynchronously (a pageable one waits for it)
+                host = self._staging
+                host.numpy()[:] = local_vertices
                 if recentre:
                     raw = self._buffers.ensure("mesh.frame", len(local_vertices), wp.vec3)
                     wp.copy(raw, host)
