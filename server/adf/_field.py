@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import logging
 import threading
 import time
 from dataclasses import dataclass
@@ -45,6 +46,8 @@ from badf.server.adf._sign import (
     resolve_sign,
 )
 from badf.server.adf._tolerances import DOMAIN_MARGIN, QUERY_CHUNK, REDOMAIN_MIN_FILL
+
+log = logging.getLogger("badf.server")
 
 # One lock per device: Warp's CUDA sorts keep per-device scratch in native code and its launches are not
 # documented as thread-safe, so engine work on a device is serialised across threads (a worker serves each
@@ -492,11 +495,17 @@ class DistanceField:
         if split.budget > 0:
             self._bvh.cut(split.levels)  # computed before the capture, kept until the next BVH build
         stages_before = list(self._clock.recorded)
-        wp.capture_begin(self._device, stream=self._stream, force_module_load=False)
         try:
+            wp.capture_begin(self._device, stream=self._stream, force_module_load=False)
+            try:
+                self._pipeline(measure=False)
+            finally:
+                graph = wp.capture_end(self._device, stream=self._stream)
+        except Exception as error:  # a driver or Warp build that cannot capture: run kernel by kernel
+            log.warning("CUDA graph capture failed on %s (%s); planned frames run kernel by kernel", self._device, error)
+            self.use_graphs = False
             self._pipeline(measure=False)
-        finally:
-            graph = wp.capture_end(self._device, stream=self._stream)
+            return
         stages = [name for name in self._clock.recorded if name not in stages_before]
         self._graph = (key, graph, stages, self._report_sizes)
         self._counters.graph_captures += 1
