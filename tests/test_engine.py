@@ -423,3 +423,27 @@ def test_planned_frames_equal_measured_frames(device):
     pick = rng.choice(len(positions), 300, replace=False)
     truth = oracle.signed_distance(positions[pick], frames[-1], faces)
     assert np.abs(values[pick] - truth).max() <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frames[-1])
+
+
+def test_a_failed_graph_capture_falls_back_to_kernel_by_kernel(device, monkeypatch, caplog):
+    """Where CUDA graphs cannot be captured, planned frames run kernel by kernel and answer the same."""
+    if not device.startswith("cuda"):
+        pytest.skip("graphs are captured on CUDA only")
+    import warp as wp
+
+    def refuse(*args, **kwargs):
+        raise RuntimeError("capture refused for this test")
+
+    vertices, faces = meshes.sphere()
+    field = DistanceField(vertices, faces, depth=4, device=device)
+    reference = DistanceField(vertices, faces, depth=4, device=device)
+    reference.use_graphs = False
+    monkeypatch.setattr(wp, "capture_begin", refuse)
+    for k in range(1, 6):
+        frame = vertices * np.float32(1.0 + 0.01 * k)
+        field.update(frame)
+        reference.update(frame)
+        for got, expected in zip(field.corner_samples(), reference.corner_samples()):
+            np.testing.assert_array_equal(got, expected)
+    assert not field.use_graphs and field.stats()["graph_captures"] == 0
+    assert "graph capture failed" in caplog.text
