@@ -1,6 +1,6 @@
 """The octree: surface cells, their radix tree, the paper's Algorithm 1, and the de-duplicated corners.
 
-Stages, each with one host read-back of a count:
+Stages (a measuring build reads one count back after each; a planned one reads nothing, see Octree):
 1. Surface cells at the finest level: every cell a triangle overlaps ("surface", the default), or the cell
    holding its centroid ("centroid", the paper's rule), grown by `halo` cells in every direction (default 1:
    then any point within one finest cell of the surface is interpolated in a finest cell, whose corners
