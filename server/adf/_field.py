@@ -522,11 +522,10 @@ class DistanceField:
     def _queue_report(self) -> list[int]:
         """Queue copies of the frame's counts to the host; returns the capacity each must fit."""
         sizes = []
-        k = 0
-        for array, index, capacity in self._octree.report():
+        for k, (array, index, capacity) in enumerate(self._octree.report()):
             wp.copy(self._report, array, dest_offset=k, src_offset=index, count=1)
             sizes.append(capacity)
-            k += 1
+        k = len(sizes)
         wp.copy(self._report, self._normals.winding_frame, dest_offset=k, count=1)
         wp.copy(self._report, self._octree.level_counts_array, dest_offset=k + 1, count=self._depth + 1)
         return sizes

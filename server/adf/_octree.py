@@ -75,12 +75,12 @@ class Octree:
         # planned capacities (set by a measuring build)
         self.node_capacity = 0
         self.internal_capacity = 0
-        # counts of the last build: a measuring build sets them, a planned one through `take_counts`
+        # counts of the last build, from its report (`take_counts`); a measuring build sets the ones it
+        # needs on the way
         self.surface_cell_count = 0  # unique finest cells holding surface (and halo)
         self.node_count = 0
         self.internal_count = 0
         self.level_counts = np.zeros(depth + 1, dtype=np.int64)
-        self.corner_candidate_count = 0
         self.corner_count = 0
         # device results, filled by build()
         self.cell_count: wp.array | None = None  # (1,) distinct cells (raw: may exceed the list's capacity)
@@ -124,7 +124,6 @@ class Octree:
         self.surface_cell_count = counts[1] if self.halo > 0 else counts[0]
         self.node_count, self.internal_count, self.corner_count = counts[-3], counts[-2], counts[-1]
         self.level_counts = level_counts.astype(np.int64)
-        self.corner_candidate_count = 27 * self.internal_count
 
     def view(self, origin: wp.vec3, side: float) -> OctreeView:
         v = OctreeView()
@@ -147,7 +146,7 @@ class Octree:
             kernel, expected = _insert_surface_cells, int(2.0 * self.surface_area / (cell * cell)) + 64
         else:
             kernel, expected = _insert_centroid_cells, face_count
-        count = self.surface_set.insert_all(
+        surface_count = self.surface_set.insert_all(
             expected,
             lambda table: wp.launch(kernel, dim=face_count, inputs=[vertices, faces, origin, cell, resolution, shift, table],
                                     device=self.device),
@@ -157,8 +156,8 @@ class Octree:
             surface = self.surface_set.view
             width = 2 * self.halo + 1
             grown = surface.list_capacity * width**3
-            count = self.halo_set.insert_all(
-                3 * (count or 0),  # a sheet of cells one thick grows to about three
+            self.halo_set.insert_all(
+                3 * (surface_count or 0),  # a sheet of cells one thick grows to about three (None: planned)
                 lambda table: wp.launch(_insert_halo_cells, dim=grown, inputs=[surface, self.halo, resolution, shift, table],
                                         device=self.device),
                 measure=measure,
@@ -166,8 +165,6 @@ class Octree:
         cells = self.cell_set
         keys, _ = cells.sort_listed(shift, KEY_TOP_BIT)
         self.cell_count = cells.view.count
-        if measure:
-            self.surface_cell_count = count
         return keys
 
     # -- stage 2: Algorithm 1 over the radix tree of the cells ---------------------------------------------
@@ -239,8 +236,7 @@ class Octree:
         wp.launch(_slots_to_ranks, dim=candidates, inputs=[rank, self.totals], outputs=[self.corner_slot],
                   device=self.device)
         if measure:
-            self.corner_candidate_count = 27 * self.internal_count
-            self.corner_count = count
+            self.corner_count = count  # this frame's search split is chosen from it
         self.corner_keys = keys
 
 
