@@ -81,6 +81,7 @@ class ClientTally:
     final_failures: list[str] = field(default_factory=list)
     last_acknowledged: dict[str, int] = field(default_factory=dict)
     round_trip_ms: list[float] = field(default_factory=list)  # update + exact query, per object and round
+    round_trip_at_s: list[float] = field(default_factory=list)  # when each began, in seconds after the start
 
     def wrong(self, text: str) -> None:
         if len(self.wrong_answers) < _MAX_REPORTED:
@@ -145,11 +146,12 @@ def _client_main(endpoint: str, index: int, settings: SoakSettings, barrier, res
             seen_peer_frames: dict[str, int] = {}
             barrier.wait(settings.start_timeout_s)
             started = True
-            deadline = time.monotonic() + settings.seconds
+            began = time.monotonic()
+            deadline = began + settings.seconds
             while time.monotonic() < deadline and tally.rounds < settings.max_rounds:
                 for obj in objects:
                     try:
-                        _one_round(obj, base, rng, tally, sent, settings)
+                        _one_round(obj, base, rng, tally, sent, settings, began)
                     except BadfError as error:
                         _count_error(tally, error, obj.name)
                 try:
@@ -169,11 +171,13 @@ def _client_main(endpoint: str, index: int, settings: SoakSettings, barrier, res
         results.put(asdict(tally))
 
 
-def _one_round(obj, base: np.ndarray, rng, tally: ClientTally, sent: dict[str, int], settings: SoakSettings) -> None:
+def _one_round(obj, base: np.ndarray, rng, tally: ClientTally, sent: dict[str, int], settings: SoakSettings,
+               began: float) -> None:
     for _ in range(settings.streams_per_update):
         obj.stream(frame_vertices(base, obj.frame + 1))
         sent[obj.name] += 1
         tally.frames_streamed += 1
+    tally.round_trip_at_s.append(time.monotonic() - began)
     started = time.perf_counter()
     next_frame = obj.frame + 1
     sent[obj.name] += 1
@@ -258,7 +262,7 @@ class SoakReport:
     rss_mib: dict[str, float]  # worker VmRSS: after registration, at the end of the warm-up, max after it, end
     device_bytes: dict[str, int]  # engine device bytes summed over the objects: end of warm-up, end
     gpu_memory_mib: dict[str, float | None]  # the worker's GPU memory as nvidia-smi sees it (None: no GPU)
-    round_trip_ms: dict[str, float]  # update + exact query: median, p99, max
+    round_trip_ms: dict[str, float]  # update + exact query: median, p99, max, and max of rounds after the warm-up
     worker_exit_code: int | None = None
     date: str = ""
     host: str = ""
@@ -426,7 +430,7 @@ def _report(
 ) -> SoakReport:
     totals: Counter = Counter()
     errors: Counter = Counter()
-    wrong, failures, round_trips = [], [], []
+    wrong, failures, round_trips, round_trips_at = [], [], [], []
     for tally in tallies:
         for name in ("rounds", "updates_acknowledged", "frames_streamed", "exact_queries", "adf_queries", "slices",
                      "infos", "peer_queries"):  # fmt: skip
@@ -436,16 +440,20 @@ def _report(
         failures += [f"client {tally['client']}: {text}" for text in tally["final_failures"]]
         failures += [f"client {tally['client']}: {text}" for text in tally["error_samples"]]
         round_trips += tally["round_trip_ms"]
+        round_trips_at += tally["round_trip_at_s"]
     samples = np.asarray(round_trips) if round_trips else np.zeros(1)
+    after_warm_up = samples[np.asarray(round_trips_at) >= settings.warm_up] if round_trips else samples
+    after_warm_up = after_warm_up if len(after_warm_up) else np.zeros(1)
     for tally in tallies:
-        del tally["round_trip_ms"]  # kept only as percentiles
+        del tally["round_trip_ms"], tally["round_trip_at_s"]  # kept only as percentiles
     return SoakReport(
         settings=asdict(settings), device=bench_device_name(settings.device), seconds_run=round(seconds_run, 2),
         clients=tallies, totals=dict(totals), errors=dict(errors), wrong_answers=wrong, final_failures=failures,
         rss_mib={key: round(value, 1) for key, value in rss.items()}, device_bytes=device_bytes,
         gpu_memory_mib=gpu_memory_mib,
         round_trip_ms={"median": round(float(np.median(samples)), 2),
-                       "p99": round(float(np.percentile(samples, 99)), 2), "max": round(float(samples.max()), 2)},
+                       "p99": round(float(np.percentile(samples, 99)), 2), "max": round(float(samples.max()), 2),
+                       "max_after_warm_up": round(float(after_warm_up.max()), 2)},
         worker_exit_code=worker_exit_code, date=timestamp(), host=platform.node(),
     )  # fmt: skip
 
@@ -498,7 +506,8 @@ def print_summary(report: SoakReport) -> None:
         ["queries exact / adf / peer", f"{t.get('exact_queries', 0)} / {t.get('adf_queries', 0)} / "
                                        f"{t.get('peer_queries', 0)}"],
         ["slices / infos", f"{t.get('slices', 0)} / {t.get('infos', 0)}"],
-        ["round trip ms median / p99 / max", f"{rt['median']} / {rt['p99']} / {rt['max']}"],
+        ["round trip ms median / p99 / max (after warm-up)",
+         f"{rt['median']} / {rt['p99']} / {rt['max']} ({rt['max_after_warm_up']})"],
         ["error replies", sum(report.errors.values())],
         ["wrong answers", len(report.wrong_answers)],
         ["final check failures", len(report.final_failures)],

@@ -23,7 +23,7 @@ import zenoh
 
 from badf.protocol import WorkerUnavailableError
 from badf.server._router import RouterSettings, listen_endpoints, log_worker_changes
-from badf.server._worker import WorkerSettings, engine_field_builder, serve
+from badf.server._worker import WorkerSettings, engine_field_builder, serve, warm_up_engine
 
 log = logging.getLogger("badf.server")
 
@@ -37,8 +37,8 @@ class _Settable(Protocol):
 def run_worker(settings: WorkerSettings, ready: _Settable | None = None) -> int:
     """Run a worker in this process's main thread until SIGINT or SIGTERM; returns the exit status.
 
-    `ready` (for instance a multiprocessing Event) is set once the worker's keys and liveliness token are
-    declared. Exit status 1: the Zenoh session could not be opened (a taken port, a bad config file);
+    `ready` (for instance a multiprocessing Event) is set once the engine's kernels are loaded (see
+    warm_up_engine) and the worker's keys and liveliness token are declared. Exit status 1: the Zenoh session could not be opened (a taken port, a bad config file);
     2: the engine or the device is unavailable.
     """
     _configure_logging()
@@ -55,6 +55,11 @@ def run_worker(settings: WorkerSettings, ready: _Settable | None = None) -> int:
     if session is None:
         return 1
     with session:
+        try:
+            warm_up_engine(device)
+        except Exception:  # noqa: BLE001 - any failure here means the engine cannot serve on this device
+            log.exception("the engine failed on %s before serving anything", device)
+            return 2
         serve(
             session,
             settings,

@@ -117,6 +117,16 @@ def engine_field_builder(device: str | None) -> tuple[FieldBuilder, str]:
     return build, resolved
 
 
+def warm_up_engine(device: str) -> None:
+    """Load every engine kernel on `device` now, so the first object registered is not answered late
+    (on a machine whose kernel cache is cold, this compiles them: minutes on a CPU, logged as it starts)."""
+    from badf.server.adf import warm_up
+
+    log.info("loading the engine's kernels on %s (compiled on the first run on a machine)", device)
+    seconds = warm_up(device)
+    log.info("engine kernels ready on %s in %.1f s", device, seconds)
+
+
 class Worker:
     """The objects of one worker and its worker-level keys. `start` declares, `close` undeclares."""
 
