@@ -19,6 +19,9 @@ FLOAT32_RELATIVE = 1e-6
 ADF_LEAF_DIAGONALS = 1.0
 # An open mesh's winding number is trusted for the sign only this far from 1/2.
 WINDING_CONFIDENCE = 0.1
+# The engine's fast winding number (exact near the point, expansions of far BVH nodes) off the surface:
+# absolute error, half the confidence margin, so no sign the tests trust rests on the approximation.
+FAST_WINDING = 0.05
 # Float32 input coordinates are rounded by half a unit in the last place: 2**-24 of their magnitude per
 # axis; a distance moves by at most sqrt(3) times that for the point and again for the surface.
 FLOAT32_INPUT_ROUNDING = 2.0**-24
