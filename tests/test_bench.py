@@ -23,3 +23,20 @@ def test_service_benchmark_runs(tmp_path: Path) -> None:
     assert "round trip, service" in names and "query 1024 pts, Zenoh echo" in names
     assert all(timing["samples"] > 0 and timing["median_ms"] > 0 for timing in report["timings"])
     assert report["worker_field_stats"]["frame"] > 0
+
+
+def test_engine_benchmark_runs(tmp_path: Path) -> None:
+    """`badf bench engine --quick` at a small depth: the table's figures, frames that move the domain
+    (each one planned, none measured again), the query error against exact queries, the dense baseline."""
+    out = tmp_path / "engine.json"
+    parser = argparse.ArgumentParser()
+    _cli.add_arguments(parser)
+    flags = ["--mesh", str(meshes.data_file("spot")), "--device", "cpu", "--depth", "4", "--repeat", "3", "--quick"]
+    assert _cli.run(parser.parse_args(["engine", *flags, "--out", str(out)])) == 0
+    report = json.loads(out.read_text())
+    (first,) = report["configurations"]
+    for key in ("build_gpu_ms", "update_gpu_ms", "update_wall_ms", "moving_update_gpu_ms", "moving_update_wall_ms"):
+        assert first[key] > 0, key
+    assert first["moving_domain_moves"] == 3 and first["moving_measured_frames"] == 1  # the build only
+    assert 0 <= first["adf_vs_exact_max_error_diag"] < 1
+    assert report["dense_baseline"]["query_ms"] > 0

@@ -140,6 +140,7 @@ class _Counters:
     last_query_ms: float = 0.0
     last_update_wall_ms: float = 0.0
     replans: int = 0  # planned frames that outgrew their sizes and were measured again
+    measured_frames: int = 0  # frames that read their sizes back on the way: the build and every replan
     graph_captures: int = 0
 
 
@@ -217,7 +218,7 @@ class DistanceField:
         self._report = wp.zeros(64, dtype=wp.int32, device="cpu", pinned=self._device.is_cuda)
         self._report_sizes: list[int] = []
         self._staging = wp.empty(vertex_count, dtype=wp.vec3, device="cpu", pinned=self._device.is_cuda)
-        self._planned = False  # whether the next frame on the same domain may be planned
+        self._planned = False  # whether the next frame may be planned (once a frame has been measured)
         self._graph = None  # (key, graph, stage names, report sizes) of the captured planned frame
         self._graph_candidate = None  # key of the last planned frame run eagerly
         self.use_graphs = True
@@ -403,6 +404,7 @@ class DistanceField:
             "updates": c.updates,
             "domain_moves": c.domain_moves,
             "replans": c.replans,
+            "measured_frames": c.measured_frames,
             "graph_captures": c.graph_captures,
             "queries": c.queries,
             "query_points": c.query_points,
@@ -415,9 +417,9 @@ class DistanceField:
         """Upload a frame and rebuild the field: refit (or rebuild, when the domain moved), sign data,
         octree, corners, corner distances.
 
-        A frame is planned when the last one was measured or planned on the same domain: its buffers keep
-        last frame's sizes with headroom and nothing is read back until the end, when the frame's counts
-        are checked against them; a frame that outgrew them is run again, measured. On CUDA a planned frame
+        Every frame after the first measured one is planned, also when the domain moved (the BVH is then
+        rebuilt): its buffers keep last frame's sizes with headroom and nothing is read back until the end,
+        when the frame's counts are checked against them; a frame that outgrew them is run again, measured. On CUDA a planned frame
         is replayed from a CUDA graph, captured from an identical planned frame (same sizes, domain and
         settings), so it costs one launch. Each object runs its frames on a stream of its own: the graph
         holds the sort's scratch memory, which Warp keeps per stream and another object's larger sort
@@ -441,14 +443,15 @@ class DistanceField:
                     wp.copy(self._vertices, host)
                 self._normals.upload_extent(extent)
             fits = False
-            if self._planned and not domain_moved:
-                self._run_planned()
+            if self._planned:
+                self._run_planned(domain_moved)
                 fits = self._take_report()
                 if not fits:
                     self._counters.replans += 1
             if not fits:
                 self._graph = None
                 self._pipeline(measure=True, domain_moved=domain_moved)
+                self._counters.measured_frames += 1
                 self._take_report()
                 self._planned = True
             self._corners.keep_frame()
@@ -473,13 +476,17 @@ class DistanceField:
                                   self._depth, self._band, coherent=self._coherence)
         self._report_sizes = self._queue_report()
 
-    def _run_planned(self) -> None:
-        """A planned frame: eagerly on the CPU, or the first time with these sizes; else from a graph."""
+    def _run_planned(self, domain_moved: bool) -> None:
+        """A planned frame: eagerly on the CPU, after the domain moved (it rebuilds the BVH), or the first
+        time with these sizes; else from a graph."""
+        if domain_moved:
+            # a new BVH: a graph captured over the old one (its cut, for instance) must not be replayed
+            self._graph = self._graph_candidate = None
+        if domain_moved or not (self._device.is_cuda and self.use_graphs):
+            self._pipeline(measure=False, domain_moved=domain_moved)
+            return
         split = self._corners.planned_split(self._octree.corner_count, self._bvh.internal_count)
         key = self._plan_key(split)
-        if not (self._device.is_cuda and self.use_graphs):
-            self._pipeline(measure=False)
-            return
         if self._graph is not None and self._graph[0] == key:
             _, graph, stages, sizes = self._graph
             wp.capture_launch(graph)
