@@ -343,6 +343,52 @@ def measure_block_dims(vertices, faces, *, depth: int, device: str, repeat: int,
     return {"depth": depth, "corners": field.stats()["counts"]["unique_corners"], "rows": rows}
 
 
+def measure_register_caps(vertices, faces, *, depth: int, device: str, repeat: int,
+                          caps=(None, 32, 40, 48, 64, 96)) -> dict:
+    """Registers and local memory per thread of the corner searches and the corner signs, compiled with
+    each cap on registers per thread (None: the compiler's choice), and their device time (CUDA activity
+    timing over `repeat` coherent updates, kernels launched one by one): whether occupancy limits them."""
+    import warp as wp
+    from badf.server.adf import DistanceField
+    from badf.server.adf import _distance
+    from badf.server.adf._sign import _SIGN_CODES
+
+    field = DistanceField(vertices, faces, depth=depth, device=device)
+    field.use_graphs = False
+    method = _SIGN_CODES[field.info()["sign"]]
+    frames = [deform(vertices, 0.5 + 0.02 * k) for k in range(repeat + 1)]
+    searches, signs = _distance.corner_searches, _distance.sign_kernel(method)
+    rows = []
+    try:
+        for cap in caps:
+            if cap is None:
+                variants = (searches, signs)
+            else:
+                variants = tuple(wp.kernel(k.func, enable_backward=False, cuda_max_registers=cap, module="unique",
+                                           name=f"{k.key}_cap{cap}") for k in (searches, signs))
+            _distance.corner_searches, _distance._KERNELS[("sign", method)] = variants
+            field.update(frames[0])
+            properties = [wp.get_cuda_kernel_properties(k, device, block_dim=_distance.SEARCH_BLOCK_DIM) for k in variants]
+            times: dict[str, list[float]] = {"searches": [], "signs": []}
+            for frame in frames[1:]:
+                wp.synchronize_device(device)
+                wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+                field.update(frame)
+                results = wp.timing_end()
+                times["searches"].append(sum(r.elapsed for r in results if "corner_searches" in r.name))
+                times["signs"].append(sum(r.elapsed for r in results if "sign_corners" in r.name))
+            rows.append({"cap": cap, "searches_ms": round(_median(times["searches"]), 4),
+                         "searches_registers": properties[0]["register_count"],
+                         "searches_local_bytes": properties[0]["local_memory_size"],
+                         "signs_ms": round(_median(times["signs"]), 4),
+                         "signs_registers": properties[1]["register_count"],
+                         "signs_local_bytes": properties[1]["local_memory_size"]})
+    finally:
+        _distance.corner_searches, _distance._KERNELS[("sign", method)] = searches, signs
+    return {"depth": depth, "corners": field.stats()["counts"]["unique_corners"], "sign": field.info()["sign"],
+            "rows": rows}
+
+
 def print_kernels(profile: dict) -> None:
     print_table(
         f"device activity of one coherent update, depth {profile['depth']}, mean over {profile['updates']} updates",
@@ -378,6 +424,14 @@ def run(args: argparse.Namespace) -> int:
             print_table(f"corner kernels by threads per block, depth {blocks['depth']}, {blocks['corners']} corners",
                         ["block dim", "searches ms", "signs ms"],
                         [[r["block_dim"], r["searches_ms"], r["signs_ms"]] for r in blocks["rows"]])
+        if args.register_sweep and device.startswith("cuda"):
+            caps = measure_register_caps(vertices, faces, depth=args.depth, device=device, repeat=repeat)
+            profile["register_caps"] = caps
+            print_table(f"corner kernels by cap on registers per thread, depth {caps['depth']}, {caps['corners']} "
+                        f"corners, sign {caps['sign']}",
+                        ["cap", "searches ms", "registers", "local bytes", "signs ms", "registers", "local bytes"],
+                        [[r["cap"] or "none", r["searches_ms"], r["searches_registers"], r["searches_local_bytes"],
+                          r["signs_ms"], r["signs_registers"], r["signs_local_bytes"]] for r in caps["rows"]])
         if args.out:
             with open(args.out, "w") as f:
                 json.dump({"benchmark": "engine-kernels", "date": timestamp(), "device": bench_device_name(device),
@@ -466,6 +520,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="only profile a default update kernel by kernel (CUDA activity timing)")
     parser.add_argument("--block-sweep", action="store_true",
                         help="with --kernels: also time the corner kernels at 32, 64, 128 and 256 threads per block")
+    parser.add_argument("--register-sweep", action="store_true",
+                        help="with --kernels (CUDA): also compile the corner kernels with caps on registers per "
+                             "thread and time them")
     parser.add_argument("--out", default=None, help="write the full results as JSON here")
 
 

@@ -24,7 +24,7 @@ for step in "$@"; do
         --out "$out/split-sweep-bunny.json" 2>&1 | tee "$out/split-sweep-bunny.log" ;;
     kernels)
       # one default update, kernel by kernel: device busy time against the update's span
-      python3 -m badf.bench.engine --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --repeat 10 --kernels --block-sweep \
+      python3 -m badf.bench.engine --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --repeat 10 --kernels --block-sweep --register-sweep \
         --out "$out/kernels-bunny.json" 2>&1 | tee "$out/kernels-bunny.log" ;;
     service)
       python3 -m badf.bench.service --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --out "$out/service-bunny.json" \

@@ -9,7 +9,7 @@ two vec4, the lower corner's w holding the child's triangle count), its node id,
 triangles under it. One visit reads both children's boxes in four 16-byte loads, and a child with at
 most LEAF_SIZE triangles is searched directly over its contiguous triangles (the tree stays binary, one
 triangle per leaf, as the octree derivation needs; the searches just stop early). Triangles are packed
-three vec4 per leaf, and the winding-number moments four vec4 per node, for the same reason.
+three vec4 per leaf, and the winding-number moments four vec4 per slot, for the same reason.
 
 The winding numbers (Barill et al. 2018) replace a node far from the point by the first two terms of its
 expansion: the dipole (the sum of area-weighted normals) and the first moment of the normals about the
@@ -68,12 +68,13 @@ class BvhView:
     leaf_face: wp.array(dtype=wp.int32)  # (n,) face index of each leaf
     face_leaf: wp.array(dtype=wp.int32)  # (n,) leaf of each face
     leaf_key: wp.array(dtype=wp.int64)  # (n,) sorted keys, for spatial seeds
-    # Fast-winding-number moments per node (empty arrays when the sign does not need them).
-    centre_radius: wp.array(dtype=wp.vec4)  # area-weighted centroid; w: radius bounding the node around it
-    normal_area: wp.array(dtype=wp.vec4)  # sum of area-weighted normals; w: total area
-    # symmetric part S of sum(area * normal x (centroid - centre)), two vec4 per node: (Sxx, Syy, Szz, Sxy),
-    # (Sxz, Syz, 0, 0)
-    moment: wp.array(dtype=wp.vec4)
+    # Fast-winding-number moments of the child in each slot, four vec4 per slot, so that one visit reads
+    # both children's in one 128-byte line (a one-element array when the sign does not need them):
+    #   4s: area-weighted centroid; w: a radius bounding the child around it
+    #   4s + 1: sum of area-weighted normals; w: total area
+    #   4s + 2, 4s + 3: symmetric part S of sum(area * normal x (centroid - centre)): (Sxx, Syy, Szz, Sxy),
+    #   (Sxz, Syz, 0, 0)
+    slot_moments: wp.array(dtype=wp.vec4)
 
 
 class Bvh:
@@ -100,10 +101,7 @@ class Bvh:
         self.slot_first = b.array("bvh.slot_first", slots, wp.int32)
         self.slot_count = b.array("bvh.slot_count", slots, wp.int32)
         self.triangles = b.array("bvh.triangles", 3 * n, wp.vec4)
-        moment_count = nodes if with_moments else 1
-        self.centre_radius = b.array("bvh.centre_radius", moment_count, wp.vec4)
-        self.normal_area = b.array("bvh.normal_area", moment_count, wp.vec4)
-        self.moment = b.array("bvh.moment", 2 * moment_count, wp.vec4)
+        self.slot_moments = b.array("bvh.slot_moments", 4 * slots if with_moments else 1, wp.vec4)
         self._buffers = b
         self._cuts: dict[int, wp.array] = {}
 
@@ -145,10 +143,9 @@ class Bvh:
         wp.launch(
             _refit,
             dim=self.face_count,
-            inputs=[vertices, faces, self.sort_faces, self.parent_slot, self.slot_child, self.slot_count,
-                    self.internal_count, 1 if self.with_moments else 0],
-            outputs=[self.slot_lower, self.slot_upper, self.triangles, self.visits, self.centre_radius,
-                     self.normal_area, self.moment],
+            inputs=[vertices, faces, self.sort_faces, self.parent_slot, self.slot_count, self.internal_count,
+                    1 if self.with_moments else 0],
+            outputs=[self.slot_lower, self.slot_upper, self.triangles, self.visits, self.slot_moments],
             device=self.device,
         )
 
@@ -173,7 +170,7 @@ class Bvh:
         v.leaf_face = self.sort_faces
         v.face_leaf = self.face_leaf
         v.leaf_key = self.sort_keys
-        v.centre_radius, v.normal_area, v.moment = self.centre_radius, self.normal_area, self.moment
+        v.slot_moments = self.slot_moments
         return v
 
     def leaf_faces(self) -> np.ndarray:
@@ -363,18 +360,18 @@ def _solid_angle_of_range(bvh: BvhView, p: wp.vec3, first: int, count: int) -> f
 
 
 @wp.func
-def _far_field(bvh: BvhView, node: int, u: wp.vec3, dist: float) -> float:
-    """4 pi times a far node's winding number at distance `dist` along unit `u` (from the point to the
-    node's centre): the dipole n.u / d^2, plus the first moment's (tr S - 3 u.S.u) / d^3."""
-    s0 = load_vec4(bvh.moment, 2 * node)
-    s1 = load_vec4(bvh.moment, 2 * node + 1)
+def _far_field(bvh: BvhView, slot: int, u: wp.vec3, dist: float) -> float:
+    """4 pi times the winding number of a far slot's child at distance `dist` along unit `u` (from the
+    point to the child's centre): the dipole n.u / d^2, plus the first moment's (tr S - 3 u.S.u) / d^3."""
+    s0 = load_vec4(bvh.slot_moments, 4 * slot + 2)
+    s1 = load_vec4(bvh.slot_moments, 4 * slot + 3)
     su = wp.vec3(
         s0[0] * u[0] + s0[3] * u[1] + s1[0] * u[2],
         s0[3] * u[0] + s0[1] * u[1] + s1[1] * u[2],
         s1[0] * u[0] + s1[1] * u[1] + s0[2] * u[2],
     )
     first = (s0[0] + s0[1] + s0[2] - 3.0 * wp.dot(u, su)) / dist
-    return (wp.dot(_xyz(load_vec4(bvh.normal_area, node)), u) + first) / (dist * dist)
+    return (wp.dot(_xyz(load_vec4(bvh.slot_moments, 4 * slot + 1)), u) + first) / (dist * dist)
 
 
 @wp.func
@@ -390,16 +387,15 @@ def winding_number(bvh: BvhView, p: wp.vec3) -> float:
         count -= 1
         slot = 2 * nodes[count]
         for side in range(2):
-            child = bvh.slot_child[slot + side]
-            centre_radius = load_vec4(bvh.centre_radius, child)
+            centre_radius = load_vec4(bvh.slot_moments, 4 * (slot + side))
             offset = _xyz(centre_radius) - p
             dist = wp.length(offset)
             if dist > _FAR_FIELD * centre_radius[3]:
-                total += _far_field(bvh, child, offset / dist, dist)
+                total += _far_field(bvh, slot + side, offset / dist, dist)
             elif bvh.slot_count[slot + side] <= LEAF_SIZE:
                 total += _solid_angle_of_range(bvh, p, bvh.slot_first[slot + side], bvh.slot_count[slot + side])
             else:
-                nodes[count] = child
+                nodes[count] = bvh.slot_child[slot + side]
                 count += 1
     return total * _INV_FOUR_PI
 
@@ -533,7 +529,7 @@ def _child_radius(mid: wp.vec3, child_centre: wp.vec3, child_radius: float, lowe
 
 
 @wp.func
-def _shifted_moment(s0: wp.vec4, s1: wp.vec4, n: wp.vec3, shift: wp.vec3):
+def _shifted_moment(s0: wp.vec4, s1: wp.vec4, n: wp.vec4, shift: wp.vec3):
     """A child's symmetric moment about its parent's centre: its own plus sym(n x shift)."""
     return (
         s0 + wp.vec4(n[0] * shift[0], n[1] * shift[1], n[2] * shift[2], 0.5 * (n[0] * shift[1] + n[1] * shift[0])),
@@ -542,14 +538,15 @@ def _shifted_moment(s0: wp.vec4, s1: wp.vec4, n: wp.vec3, shift: wp.vec3):
 
 
 @wp.func
-def _merge_moments(node: int, left: int, right: int, lower_l: wp.vec4, upper_l: wp.vec4, lower_r: wp.vec4,
-                   upper_r: wp.vec4, centre_radius: wp.array(dtype=wp.vec4), normal_area: wp.array(dtype=wp.vec4),
-                   moment: wp.array(dtype=wp.vec4)):
-    """Node's winding moments from its children's (read from L2: written in this launch)."""
-    centre_radius_l = load_coherent_vec4(centre_radius, left)
-    centre_radius_r = load_coherent_vec4(centre_radius, right)
-    normal_l = load_coherent_vec4(normal_area, left)
-    normal_r = load_coherent_vec4(normal_area, right)
+def _merged_moments(node: int, lower_l: wp.vec4, upper_l: wp.vec4, lower_r: wp.vec4, upper_r: wp.vec4,
+                    slot_moments: wp.array(dtype=wp.vec4)):
+    """Node's winding moments from its children's slots (read from L2: written in this launch)."""
+    left = 8 * node  # slot 2 node, four vec4 per slot
+    right = left + 4
+    centre_radius_l = load_coherent_vec4(slot_moments, left)
+    centre_radius_r = load_coherent_vec4(slot_moments, right)
+    normal_l = load_coherent_vec4(slot_moments, left + 1)
+    normal_r = load_coherent_vec4(slot_moments, right + 1)
     total = normal_l[3] + normal_r[3]
     centre_l = _xyz(centre_radius_l)
     centre_r = _xyz(centre_radius_r)
@@ -558,15 +555,11 @@ def _merge_moments(node: int, left: int, right: int, lower_l: wp.vec4, upper_l: 
         mid = (normal_l[3] * centre_l + normal_r[3] * centre_r) / total
     radius = wp.max(_child_radius(mid, centre_l, centre_radius_l[3], lower_l, upper_l),
                     _child_radius(mid, centre_r, centre_radius_r[3], lower_r, upper_r))
-    centre_radius[node] = wp.vec4(mid[0], mid[1], mid[2], radius)
-    n = _xyz(normal_l) + _xyz(normal_r)
-    normal_area[node] = wp.vec4(n[0], n[1], n[2], total)
-    l0, l1 = _shifted_moment(load_coherent_vec4(moment, 2 * left), load_coherent_vec4(moment, 2 * left + 1),
-                             _xyz(normal_l), centre_l - mid)
-    r0, r1 = _shifted_moment(load_coherent_vec4(moment, 2 * right), load_coherent_vec4(moment, 2 * right + 1),
-                             _xyz(normal_r), centre_r - mid)
-    moment[2 * node] = l0 + r0
-    moment[2 * node + 1] = l1 + r1
+    l0, l1 = _shifted_moment(load_coherent_vec4(slot_moments, left + 2), load_coherent_vec4(slot_moments, left + 3),
+                             normal_l, centre_l - mid)
+    r0, r1 = _shifted_moment(load_coherent_vec4(slot_moments, right + 2), load_coherent_vec4(slot_moments, right + 3),
+                             normal_r, centre_r - mid)
+    return wp.vec4(mid[0], mid[1], mid[2], radius), normal_l + normal_r, l0 + r0, l1 + r1
 
 
 @wp.kernel(enable_backward=False)
@@ -575,7 +568,6 @@ def _refit(
     faces: wp.array(dtype=wp.vec3i),
     leaf_face: wp.array(dtype=wp.int32),
     parent_slot: wp.array(dtype=wp.int32),
-    slot_child: wp.array(dtype=wp.int32),
     slot_count: wp.array(dtype=wp.int32),
     internal_count: int,
     with_moments: int,
@@ -583,9 +575,7 @@ def _refit(
     slot_upper: wp.array(dtype=wp.vec4),
     triangles: wp.array(dtype=wp.vec4),
     visits: wp.array(dtype=wp.int32),
-    centre_radius: wp.array(dtype=wp.vec4),
-    normal_area: wp.array(dtype=wp.vec4),
-    moment: wp.array(dtype=wp.vec4),
+    slot_moments: wp.array(dtype=wp.vec4),
 ):
     k = wp.tid()
     tri = faces[leaf_face[k]]
@@ -598,22 +588,27 @@ def _refit(
     node = internal_count + k
     lower = wp.min(wp.min(a, b), c)
     upper = wp.max(wp.max(a, b), c)
-    if with_moments != 0:
-        n = 0.5 * wp.cross(b - a, c - a)
-        mid = (a + b + c) / 3.0
-        radius = wp.max(wp.max(wp.length(a - mid), wp.length(b - mid)), wp.length(c - mid))
-        centre_radius[node] = wp.vec4(mid[0], mid[1], mid[2], radius)
-        normal_area[node] = wp.vec4(n[0], n[1], n[2], wp.length(n))
-        moment[2 * node] = wp.vec4(0.0)  # a triangle's own first moment about its centroid is zero
-        moment[2 * node + 1] = wp.vec4(0.0)
-    # Walk up; each node's box goes into its slot in the parent, and the second child to arrive at a node
-    # merges both (Karras 2012). Writers fence before counting their arrival and the merger reads its
-    # children from L2, so no stale value is merged.
+    # this node's winding moments (see BvhView.slot_moments); a triangle's first moment about its centroid is zero
+    mid = (a + b + c) / 3.0
+    n = 0.5 * wp.cross(b - a, c - a)
+    centre_radius = wp.vec4(mid[0], mid[1], mid[2],
+                            wp.max(wp.max(wp.length(a - mid), wp.length(b - mid)), wp.length(c - mid)))
+    normal_area = wp.vec4(n[0], n[1], n[2], wp.length(n))
+    moment_0 = wp.vec4(0.0)
+    moment_1 = wp.vec4(0.0)
+    # Walk up; each node's box (and moments) go into its slot in the parent, and the second child to arrive
+    # at a node merges both (Karras 2012). Writers fence before counting their arrival and the merger reads
+    # its children from L2, so no stale value is merged.
     slot = parent_slot[node]
     while slot >= 0:
         count = float(slot_count[slot])
         slot_lower[slot] = wp.vec4(lower[0], lower[1], lower[2], count)
         slot_upper[slot] = wp.vec4(upper[0], upper[1], upper[2], count)
+        if with_moments != 0:
+            slot_moments[4 * slot] = centre_radius
+            slot_moments[4 * slot + 1] = normal_area
+            slot_moments[4 * slot + 2] = moment_0
+            slot_moments[4 * slot + 3] = moment_1
         thread_fence()
         node = slot // 2
         if wp.atomic_add(visits, node, 1) == 0:
@@ -625,6 +620,6 @@ def _refit(
         lower = wp.min(_xyz(lower_0), _xyz(lower_1))
         upper = wp.max(_xyz(upper_0), _xyz(upper_1))
         if with_moments != 0:
-            _merge_moments(node, slot_child[2 * node], slot_child[2 * node + 1], lower_0, upper_0, lower_1, upper_1,
-                           centre_radius, normal_area, moment)
+            centre_radius, normal_area, moment_0, moment_1 = _merged_moments(node, lower_0, upper_0, lower_1, upper_1,
+                                                                             slot_moments)
         slot = parent_slot[node]
