@@ -346,7 +346,7 @@ def measure_block_dims(vertices, faces, *, depth: int, device: str, repeat: int,
 def measure_register_caps(vertices, faces, *, depth: int, device: str, repeat: int,
                           caps=(None, 32, 40, 48, 64, 96)) -> dict:
     """Registers and local memory per thread of the corner searches and the corner signs, compiled with
-    each cap on registers per thread (None: the compiler's choice), and their device time (CUDA activity
+    each cap on registers per thread (None: as the engine compiles them), and their device time (CUDA activity
     timing over `repeat` coherent updates, kernels launched one by one): whether occupancy limits them."""
     import warp as wp
     from badf.server.adf import DistanceField
@@ -430,7 +430,7 @@ def run(args: argparse.Namespace) -> int:
             print_table(f"corner kernels by cap on registers per thread, depth {caps['depth']}, {caps['corners']} "
                         f"corners, sign {caps['sign']}",
                         ["cap", "searches ms", "registers", "local bytes", "signs ms", "registers", "local bytes"],
-                        [[r["cap"] or "none", r["searches_ms"], r["searches_registers"], r["searches_local_bytes"],
+                        [[r["cap"] or "engine's", r["searches_ms"], r["searches_registers"], r["searches_local_bytes"],
                           r["signs_ms"], r["signs_registers"], r["signs_local_bytes"]] for r in caps["rows"]])
         if args.out:
             with open(args.out, "w") as f:
