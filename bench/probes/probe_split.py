@@ -1,0 +1,102 @@
+"""Probe, not part of the product (python3 bench/probes/probe_split.py MESH.npz [device]; results in
+docs/results/probe-split-*): corner searches where corners far from the surface last frame go
+straight to the subtree split, and the rest search whole (or with a budget)."""
+import sys, json, numpy as np, warp as wp
+wp.config.log_level = wp.LOG_ERROR
+wp.init()
+from badf.server.adf import DistanceField
+from badf.server.adf import _distance as D
+from badf.server.adf._bvh import BvhView
+from badf.server.adf._geometry import morton3, pack_distance_leaf
+
+@wp.kernel(enable_backward=False)
+def searches(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int32), capacity: int, origin: wp.vec3,
+             cell: float, inv_side: float, depth: int, bvh: BvhView, band: float, coherent: int,
+             previous_keys: wp.array(dtype=wp.int64), previous_face: wp.array(dtype=wp.int32),
+             previous_count: wp.array(dtype=wp.int32), previous_capacity: int, previous_origin: wp.vec3,
+             previous_inv_cell: float, budget: int, far: wp.array(dtype=int),
+             distance: wp.array(dtype=float), nearest: wp.array(dtype=int), long_count: wp.array(dtype=int),
+             long_corner: wp.array(dtype=int), long_bound: wp.array(dtype=float), long_best: wp.array(dtype=wp.int64)):
+    i = wp.tid()
+    if i >= wp.min(count[0], capacity):
+        return
+    p = D._lattice_point(corner_keys[i], origin, cell)
+    q = (p - previous_origin) * previous_inv_cell
+    top = 1 << depth
+    previous_key = morton3(wp.clamp(int(wp.round(q[0])), 0, top), wp.clamp(int(wp.round(q[1])), 0, top),
+                           wp.clamp(int(wp.round(q[2])), 0, top))
+    listed = wp.min(previous_count[0], previous_capacity)
+    slot = wp.min(D._search_sorted(previous_keys, listed, previous_key), listed - 1)
+    seed = bvh.face_leaf[previous_face[slot]]
+    b = budget
+    if far[i] != 0:
+        b = 0
+    best_leaf, best_sq, finished = D._nearest_with_band(bvh, p, seed, band, b)
+    distance[i] = wp.sqrt(best_sq)
+    nearest[i] = best_leaf
+    if not finished:
+        item = wp.atomic_add(long_count, 0, 1)
+        long_corner[item] = i
+        long_bound[item] = best_sq
+        long_best[item] = pack_distance_leaf(best_sq, best_leaf)
+
+DEV = sys.argv[2] if len(sys.argv) > 2 else "cuda:0"
+d = np.load(sys.argv[1]); v, f = d["vertices"], d["faces"]
+field = DistanceField(v, f, depth=7, device=DEV); field.use_graphs = False
+field.update(v * np.float32(1.001))
+captured = {}
+real_launch = wp.launch
+def spy(kernel, *args, **kwargs):
+    if kernel is D.corner_searches:
+        captured["inputs"] = list(kwargs["inputs"])
+    return real_launch(kernel, *args, **kwargs)
+wp.launch = spy
+field.update(v * np.float32(1.002))
+wp.launch = real_launch
+inputs = captured["inputs"][:-1]
+cap, cell = inputs[2], inputs[4]
+keys, origin, bvh = inputs[0], inputs[3], inputs[7]
+n = int(inputs[1].numpy()[0])
+truth = np.abs(field._corners.value.numpy()[:n])
+cells = truth / cell
+z = lambda dt: wp.zeros(cap, dtype=dt, device=DEV)
+dist, near, lc, lb, lbest = z(float), z(int), z(int), z(float), z(wp.int64)
+lcount = wp.zeros(1, dtype=int, device=DEV)
+far = z(int)
+rows = []
+for K, budget, levels in [(None, 2**31 - 1, 6), (None, 128, 6), (8, 2**31 - 1, 6), (4, 2**31 - 1, 6), (8, 128, 6),
+                          (4, 128, 6), (8, 2**31 - 1, 8), (4, 128, 8), (2, 128, 8), (4, 256, 6)]:
+    flags = np.zeros(cap, np.int32)
+    if K is not None:
+        flags[:n] = cells >= K
+    far.assign(flags)
+    cut = field._bvh.cut(levels)
+    groups = 4096
+    times = []
+    for rep in range(5):
+        wp.synchronize()
+        import time
+        cpu = DEV == "cpu"
+        mark = (lambda: time.perf_counter()) if cpu else None
+        if not cpu:
+            e0 = wp.Event(enable_timing=True); e1 = wp.Event(enable_timing=True); e2 = wp.Event(enable_timing=True)
+        lcount.zero_()
+        c0 = time.perf_counter()
+        if not cpu: wp.record_event(e0)
+        wp.launch(searches, dim=cap, inputs=inputs + [budget, far], outputs=[dist, near, lcount, lc, lb, lbest],
+                  device=DEV, block_dim=128)
+        c1 = time.perf_counter()
+        if not cpu: wp.record_event(e1)
+        wp.launch(D._split_searches, dim=groups << levels, inputs=[keys, origin, cell, bvh, cut, levels, groups, lcount, lc, lb],
+                  outputs=[lbest], device=DEV)
+        wp.launch(D._gather_split, dim=groups, inputs=[groups, lcount, lc, lbest], outputs=[dist, near], device=DEV)
+        c2 = time.perf_counter()
+        if not cpu: wp.record_event(e2)
+        wp.synchronize()
+        times.append(((c1 - c0) * 1e3, (c2 - c1) * 1e3) if cpu else (wp.get_event_elapsed_time(e0, e1), wp.get_event_elapsed_time(e1, e2)))
+    t = np.median(np.array(times), axis=0)
+    err = float(np.abs(dist.numpy()[:n] - truth).max() / field._domain.side)
+    rows.append(dict(far_cells=K, budget=budget if budget < 2**31 - 1 else "none", levels=levels,
+                     long=int(lcount.numpy()[0]), far=int(flags.sum()), searches_ms=round(float(t[0]), 4),
+                     split_ms=round(float(t[1]), 4), total_ms=round(float(t.sum()), 4), max_err_side=err))
+    print(rows[-1], flush=True)
