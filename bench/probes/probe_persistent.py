@@ -1,0 +1,159 @@
+"""Probe, not part of the product (python3 bench/probes/probe_persistent.py MESH.npz [device]): corner
+searches by persistent threads that take corners one at a time from a shared counter, stop after a budget
+of node visits and list the rest for the subtree split (the engine's _split_searches), against one thread
+per corner."""
+import sys, time, numpy as np, warp as wp
+wp.config.log_level = wp.LOG_ERROR
+wp.init()
+from badf.server.adf import DistanceField
+from badf.server.adf import _distance as D
+from badf.server.adf._bvh import BvhView
+from badf.server.adf._geometry import morton3, pack_distance_leaf
+
+
+@wp.func
+def _seed(bvh: BvhView, p: wp.vec3, depth: int, previous_keys: wp.array(dtype=wp.int64),
+          previous_face: wp.array(dtype=wp.int32), previous_count: wp.array(dtype=wp.int32), previous_capacity: int,
+          previous_origin: wp.vec3, previous_inv_cell: float) -> int:
+    q = (p - previous_origin) * previous_inv_cell
+    top = 1 << depth
+    previous_key = morton3(wp.clamp(int(wp.round(q[0])), 0, top), wp.clamp(int(wp.round(q[1])), 0, top),
+                           wp.clamp(int(wp.round(q[2])), 0, top))
+    listed = wp.min(previous_count[0], previous_capacity)
+    slot = wp.min(D._search_sorted(previous_keys, listed, previous_key), listed - 1)
+    return bvh.face_leaf[previous_face[slot]]
+
+
+@wp.kernel(enable_backward=False)
+def persistent(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int32), capacity: int, origin: wp.vec3,
+               cell: float, inv_side: float, depth: int, bvh: BvhView, band: float, coherent: int,
+               previous_keys: wp.array(dtype=wp.int64), previous_face: wp.array(dtype=wp.int32),
+               previous_count: wp.array(dtype=wp.int32), previous_capacity: int, previous_origin: wp.vec3,
+               previous_inv_cell: float, budget: int, next_item: wp.array(dtype=int),
+               distance: wp.array(dtype=float), nearest: wp.array(dtype=int), long_count: wp.array(dtype=int),
+               long_corner: wp.array(dtype=int), long_bound: wp.array(dtype=float), long_best: wp.array(dtype=wp.int64)):
+    n = wp.min(count[0], capacity)
+    i = wp.atomic_add(next_item, 0, 1)
+    while i < n:
+        p = D._lattice_point(corner_keys[i], origin, cell)
+        seed = _seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity, previous_origin,
+                     previous_inv_cell)
+        best_leaf, best_sq, finished = D._nearest_with_band(bvh, p, seed, band, budget)
+        distance[i] = wp.sqrt(best_sq)
+        nearest[i] = best_leaf
+        if not finished:
+            item = wp.atomic_add(long_count, 0, 1)
+            long_corner[item] = i
+            long_bound[item] = best_sq
+            long_best[item] = pack_distance_leaf(best_sq, best_leaf)
+        i = wp.atomic_add(next_item, 0, 1)
+
+
+@wp.kernel(enable_backward=False)
+def one_each(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int32), capacity: int, origin: wp.vec3,
+             cell: float, inv_side: float, depth: int, bvh: BvhView, band: float, coherent: int,
+             previous_keys: wp.array(dtype=wp.int64), previous_face: wp.array(dtype=wp.int32),
+             previous_count: wp.array(dtype=wp.int32), previous_capacity: int, previous_origin: wp.vec3,
+             previous_inv_cell: float, budget: int, next_item: wp.array(dtype=int),
+             distance: wp.array(dtype=float), nearest: wp.array(dtype=int), long_count: wp.array(dtype=int),
+             long_corner: wp.array(dtype=int), long_bound: wp.array(dtype=float), long_best: wp.array(dtype=wp.int64)):
+    i = wp.tid()
+    if i >= wp.min(count[0], capacity):
+        return
+    p = D._lattice_point(corner_keys[i], origin, cell)
+    seed = _seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity, previous_origin,
+                 previous_inv_cell)
+    best_leaf, best_sq, finished = D._nearest_with_band(bvh, p, seed, band, budget)
+    distance[i] = wp.sqrt(best_sq)
+    nearest[i] = best_leaf
+    if not finished:
+        item = wp.atomic_add(long_count, 0, 1)
+        long_corner[item] = i
+        long_bound[item] = best_sq
+        long_best[item] = pack_distance_leaf(best_sq, best_leaf)
+
+
+@wp.kernel(enable_backward=False)
+def split_pairs(corner_keys: wp.array(dtype=wp.int64), origin: wp.vec3, cell: float, bvh: BvhView,
+                cut: wp.array(dtype=wp.int32), levels: int, next_pair: wp.array(dtype=int),
+                long_count: wp.array(dtype=wp.int32), long_corner: wp.array(dtype=wp.int32),
+                long_bound: wp.array(dtype=wp.float32), long_best: wp.array(dtype=wp.int64)):
+    """Persistent threads over (long corner, cut subtree) pairs, taken one at a time from a shared counter:
+    consecutive pairs share a corner, so a warp walks 32 subtrees around one point."""
+    total = long_count[0] << levels
+    k = wp.atomic_add(next_pair, 0, 1)
+    while k < total:
+        item = k >> levels
+        slot = cut[k - (item << levels)]
+        if slot >= 0:
+            p = D._lattice_point(corner_keys[long_corner[item]], origin, cell)
+            leaf, leaf_sq = D.nearest_in_slot(bvh, p, slot, -1, long_bound[item])
+            if leaf >= 0:
+                D.atomic_min_packed(long_best, item, pack_distance_leaf(leaf_sq, leaf))
+        k = wp.atomic_add(next_pair, 0, 1)
+
+
+DEV = sys.argv[2] if len(sys.argv) > 2 else "cuda:0"
+d = np.load(sys.argv[1]); v, f = d["vertices"], d["faces"]
+field = DistanceField(v, f, depth=7, device=DEV); field.use_graphs = False
+field.update(v * np.float32(1.001))
+captured = {}
+real_launch = wp.launch
+def spy(kernel, *args, **kwargs):
+    if kernel is D.corner_searches:
+        captured["inputs"] = list(kwargs["inputs"])
+    return real_launch(kernel, *args, **kwargs)
+wp.launch = spy
+field.update(v * np.float32(1.002))
+wp.launch = real_launch
+inputs = captured["inputs"][:-1]
+cap, cell = inputs[2], inputs[4]
+keys, origin, bvh = inputs[0], inputs[3], inputs[7]
+n = int(inputs[1].numpy()[0])
+truth = np.abs(field._corners.value.numpy()[:n])
+z = lambda dt: wp.zeros(cap, dtype=dt, device=DEV)
+dist, near, lc, lb, lbest = z(float), z(int), z(int), z(float), z(wp.int64)
+lcount = wp.zeros(1, dtype=int, device=DEV)
+counter = wp.zeros(1, dtype=int, device=DEV)
+sms = wp.get_device(DEV).sm_count if DEV != "cpu" else 1
+UNL = 2**31 - 1
+cases = [("one per corner", one_each, cap, UNL, 6, False), ("one per corner", one_each, cap, 128, 6, False)]
+for budget in (32, 64, 128):
+    for levels in (4, 6, 8):
+        cases.append(("persistent 2048/SM, pair split", persistent, sms * 2048, budget, levels, True))
+        cases.append(("one per corner, pair split", one_each, cap, budget, levels, True))
+counter2 = wp.zeros(1, dtype=int, device=DEV)
+for name, kernel, threads, budget, levels, pairs in cases:
+    cut = field._bvh.cut(levels)
+    groups = 4096
+    times = []
+    for rep in range(5):
+        wp.synchronize()
+        lcount.zero_(); counter.zero_(); counter2.zero_()
+        c0 = time.perf_counter()
+        if DEV != "cpu":
+            e0, e1, e2 = (wp.Event(enable_timing=True) for _ in range(3))
+            wp.record_event(e0)
+        wp.launch(kernel, dim=threads, inputs=inputs + [budget, counter], outputs=[dist, near, lcount, lc, lb, lbest],
+                  device=DEV, block_dim=128)
+        c1 = time.perf_counter()
+        if DEV != "cpu":
+            wp.record_event(e1)
+        if pairs:
+            wp.launch(split_pairs, dim=sms * 2048, inputs=[keys, origin, cell, bvh, cut, levels, counter2, lcount, lc, lb],
+                      outputs=[lbest], device=DEV, block_dim=128)
+        else:
+            wp.launch(D._split_searches, dim=groups << levels, inputs=[keys, origin, cell, bvh, cut, levels, groups, lcount, lc, lb],
+                      outputs=[lbest], device=DEV)
+        wp.launch(D._gather_split, dim=groups, inputs=[groups, lcount, lc, lbest], outputs=[dist, near], device=DEV)
+        if DEV != "cpu":
+            wp.record_event(e2)
+        wp.synchronize()
+        c2 = time.perf_counter()
+        times.append(((c1 - c0) * 1e3, (c2 - c1) * 1e3) if DEV == "cpu" else
+                     (wp.get_event_elapsed_time(e0, e1), wp.get_event_elapsed_time(e1, e2)))
+    t = np.median(np.array(times), axis=0)
+    err = float(np.abs(dist.numpy()[:n] - truth).max() / field._domain.side)
+    print(dict(kernel=name, pair_split=pairs, threads=threads, budget=budget if budget < UNL else "none", levels=levels,
+               long=int(lcount.numpy()[0]), searches_ms=round(float(t[0]), 4), split_ms=round(float(t[1]), 4),
+               total_ms=round(float(t.sum()), 4), max_err_side=err), flush=True)
