@@ -312,6 +312,23 @@ def measure_kernels(vertices, faces, *, depth: int, device: str, repeat: int) ->
     }
 
 
+def _corner_kernel_ms(field, frames, device: str) -> tuple[float, float]:
+    """Median device time (ms) of the corner searches and of the corner signs over frames[1:] (CUDA
+    activity timing), after frames[0] settles the field's sizes."""
+    import warp as wp
+
+    field.update(frames[0])
+    searches, signs = [], []
+    for frame in frames[1:]:
+        wp.synchronize_device(device)
+        wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+        field.update(frame)
+        results = wp.timing_end()
+        searches.append(sum(r.elapsed for r in results if "corner_searches" in r.name))
+        signs.append(sum(r.elapsed for r in results if "sign_corners" in r.name))
+    return round(_median(searches), 4), round(_median(signs), 4)
+
+
 def measure_block_dims(vertices, faces, *, depth: int, device: str, repeat: int, dims=(32, 64, 128, 256)) -> dict:
     """Device time of the corner searches and the corner signs for each threads-per-block choice (CUDA
     activity timing over `repeat` coherent updates, kernels launched one by one)."""
@@ -327,17 +344,8 @@ def measure_block_dims(vertices, faces, *, depth: int, device: str, repeat: int,
     try:
         for dim in dims:
             _distance.SEARCH_BLOCK_DIM = _distance.SIGN_BLOCK_DIM = dim
-            field.update(frames[0])
-            per_kernel: dict[str, list[float]] = {"searches": [], "signs": []}
-            for frame in frames[1:]:
-                wp.synchronize_device(device)
-                wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
-                field.update(frame)
-                results = wp.timing_end()
-                per_kernel["searches"].append(sum(r.elapsed for r in results if "corner_searches" in r.name))
-                per_kernel["signs"].append(sum(r.elapsed for r in results if "sign_corners" in r.name))
-            rows.append({"block_dim": dim, "searches_ms": round(_median(per_kernel["searches"]), 4),
-                         "signs_ms": round(_median(per_kernel["signs"]), 4)})
+            searches_ms, signs_ms = _corner_kernel_ms(field, frames, device)
+            rows.append({"block_dim": dim, "searches_ms": searches_ms, "signs_ms": signs_ms})
     finally:
         _distance.SEARCH_BLOCK_DIM, _distance.SIGN_BLOCK_DIM = default
     return {"depth": depth, "corners": field.stats()["counts"]["unique_corners"], "rows": rows}
@@ -367,20 +375,12 @@ def measure_register_caps(vertices, faces, *, depth: int, device: str, repeat: i
                 variants = tuple(wp.kernel(k.func, enable_backward=False, cuda_max_registers=cap, module="unique",
                                            name=f"{k.key}_cap{cap}") for k in (searches, signs))
             _distance.corner_searches, _distance._KERNELS[("sign", method)] = variants
-            field.update(frames[0])
+            searches_ms, signs_ms = _corner_kernel_ms(field, frames, device)
             properties = [wp.get_cuda_kernel_properties(k, device, block_dim=_distance.SEARCH_BLOCK_DIM) for k in variants]
-            times: dict[str, list[float]] = {"searches": [], "signs": []}
-            for frame in frames[1:]:
-                wp.synchronize_device(device)
-                wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
-                field.update(frame)
-                results = wp.timing_end()
-                times["searches"].append(sum(r.elapsed for r in results if "corner_searches" in r.name))
-                times["signs"].append(sum(r.elapsed for r in results if "sign_corners" in r.name))
-            rows.append({"cap": cap, "searches_ms": round(_median(times["searches"]), 4),
+            rows.append({"cap": cap, "searches_ms": searches_ms,
                          "searches_registers": properties[0]["register_count"],
                          "searches_local_bytes": properties[0]["local_memory_size"],
-                         "signs_ms": round(_median(times["signs"]), 4),
+                         "signs_ms": signs_ms,
                          "signs_registers": properties[1]["register_count"],
                          "signs_local_bytes": properties[1]["local_memory_size"]})
     finally:

@@ -2,27 +2,18 @@
 searches by persistent threads that take corners one at a time from a shared counter, stop after a budget
 of node visits and list the rest for the subtree split (the engine's _split_searches), against one thread
 per corner."""
-import sys, time, numpy as np, warp as wp
-wp.config.log_level = wp.LOG_ERROR
-wp.init()
-from badf.server.adf import DistanceField
+import sys
+import time
+
+import numpy as np
+import warp as wp
+
 from badf.server.adf import _distance as D
 from badf.server.adf._bvh import BvhView
-from badf.server.adf._geometry import morton3, pack_distance_leaf
+from badf.server.adf._geometry import pack_distance_leaf
 
-
-@wp.func
-def _seed(bvh: BvhView, p: wp.vec3, depth: int, previous_keys: wp.array(dtype=wp.int64),
-          previous_face: wp.array(dtype=wp.int32), previous_count: wp.array(dtype=wp.int32), previous_capacity: int,
-          previous_origin: wp.vec3, previous_inv_cell: float) -> int:
-    q = (p - previous_origin) * previous_inv_cell
-    top = 1 << depth
-    previous_key = morton3(wp.clamp(int(wp.round(q[0])), 0, top), wp.clamp(int(wp.round(q[1])), 0, top),
-                           wp.clamp(int(wp.round(q[2])), 0, top))
-    listed = wp.min(previous_count[0], previous_capacity)
-    slot = wp.min(D._search_sorted(previous_keys, listed, previous_key), listed - 1)
-    return bvh.face_leaf[previous_face[slot]]
-
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from _capture import captured_search  # noqa: E402
 
 @wp.kernel(enable_backward=False)
 def persistent(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int32), capacity: int, origin: wp.vec3,
@@ -36,16 +27,13 @@ def persistent(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.i
     i = wp.atomic_add(next_item, 0, 1)
     while i < n:
         p = D._lattice_point(corner_keys[i], origin, cell)
-        seed = _seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity, previous_origin,
-                     previous_inv_cell)
+        seed = D.coherent_seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity,
+                               previous_origin, previous_inv_cell)
         best_leaf, best_sq, finished = D._nearest_with_band(bvh, p, seed, band, budget)
         distance[i] = wp.sqrt(best_sq)
         nearest[i] = best_leaf
         if not finished:
-            item = wp.atomic_add(long_count, 0, 1)
-            long_corner[item] = i
-            long_bound[item] = best_sq
-            long_best[item] = pack_distance_leaf(best_sq, best_leaf)
+            D.list_long_search(i, best_sq, best_leaf, long_count, long_corner, long_bound, long_best)
         i = wp.atomic_add(next_item, 0, 1)
 
 
@@ -61,16 +49,13 @@ def one_each(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int
     if i >= wp.min(count[0], capacity):
         return
     p = D._lattice_point(corner_keys[i], origin, cell)
-    seed = _seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity, previous_origin,
-                 previous_inv_cell)
+    seed = D.coherent_seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity,
+                           previous_origin, previous_inv_cell)
     best_leaf, best_sq, finished = D._nearest_with_band(bvh, p, seed, band, budget)
     distance[i] = wp.sqrt(best_sq)
     nearest[i] = best_leaf
     if not finished:
-        item = wp.atomic_add(long_count, 0, 1)
-        long_corner[item] = i
-        long_bound[item] = best_sq
-        long_best[item] = pack_distance_leaf(best_sq, best_leaf)
+        D.list_long_search(i, best_sq, best_leaf, long_count, long_corner, long_bound, long_best)
 
 
 @wp.kernel(enable_backward=False)
@@ -94,23 +79,9 @@ def split_pairs(corner_keys: wp.array(dtype=wp.int64), origin: wp.vec3, cell: fl
 
 
 DEV = sys.argv[2] if len(sys.argv) > 2 else "cuda:0"
-d = np.load(sys.argv[1]); v, f = d["vertices"], d["faces"]
-field = DistanceField(v, f, depth=7, device=DEV); field.use_graphs = False
-field.update(v * np.float32(1.001))
-captured = {}
-real_launch = wp.launch
-def spy(kernel, *args, **kwargs):
-    if kernel is D.corner_searches:
-        captured["inputs"] = list(kwargs["inputs"])
-    return real_launch(kernel, *args, **kwargs)
-wp.launch = spy
-field.update(v * np.float32(1.002))
-wp.launch = real_launch
-inputs = captured["inputs"][:-1]
+field, inputs, n, truth = captured_search(sys.argv[1], DEV)
 cap, cell = inputs[2], inputs[4]
 keys, origin, bvh = inputs[0], inputs[3], inputs[7]
-n = int(inputs[1].numpy()[0])
-truth = np.abs(field._corners.value.numpy()[:n])
 z = lambda dt: wp.zeros(cap, dtype=dt, device=DEV)
 dist, near, lc, lb, lbest = z(float), z(int), z(int), z(float), z(wp.int64)
 lcount = wp.zeros(1, dtype=int, device=DEV)

@@ -1,12 +1,16 @@
 """Probe, not part of the product (run by hand on a GPU: python3 bench/probes/probe_searches.py MESH.npz [device]):
 per-thread clock and SM of the corner searches on one coherent update. Results: docs/results/probe-searches-*."""
-import sys, json, numpy as np, warp as wp
-wp.config.log_level = wp.LOG_ERROR
-wp.init()
-from badf.server.adf import DistanceField
+import json
+import sys
+
+import numpy as np
+import warp as wp
+
 from badf.server.adf import _distance as D
 from badf.server.adf._bvh import BvhView, spatial_seed
-from badf.server.adf._geometry import morton3
+
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from _capture import captured_search  # noqa: E402
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
@@ -52,13 +56,8 @@ def probe(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int32)
     p = D._lattice_point(corner_keys[i], origin, cell)
     seed = int(-1)
     if coherent != 0:
-        q = (p - previous_origin) * previous_inv_cell
-        top = 1 << depth
-        previous_key = morton3(wp.clamp(int(wp.round(q[0])), 0, top), wp.clamp(int(wp.round(q[1])), 0, top),
-                               wp.clamp(int(wp.round(q[2])), 0, top))
-        listed = wp.min(previous_count[0], previous_capacity)
-        slot = wp.min(D._search_sorted(previous_keys, listed, previous_key), listed - 1)
-        seed = bvh.face_leaf[previous_face[slot]]
+        seed = D.coherent_seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity,
+                               previous_origin, previous_inv_cell)
     else:
         seed = spatial_seed(bvh, p, origin, inv_side)
     best_leaf, best_sq, finished = D._nearest_with_band(bvh, p, seed, band, budget)
@@ -68,24 +67,11 @@ def probe(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int32)
     sm[i] = smid()
 
 DEV = sys.argv[2] if len(sys.argv) > 2 else "cuda:0"
-d = np.load(sys.argv[1]); v, f = d["vertices"], d["faces"]
-field = DistanceField(v, f, depth=7, device=DEV); field.use_graphs = False
-field.update(v * np.float32(1.001))
-captured = {}
-real_launch = wp.launch
-def spy(kernel, *args, **kwargs):
-    if kernel is D.corner_searches:
-        captured["inputs"] = kwargs["inputs"]
-    return real_launch(kernel, *args, **kwargs)
-wp.launch = spy
-field.update(v * np.float32(1.002))
-wp.launch = real_launch
-inputs = captured["inputs"]
+field, inputs, n, _ = captured_search(sys.argv[1], DEV)
+inputs = inputs + [D.UNLIMITED_VISITS]
 cap = inputs[2]
-n = int(inputs[1].numpy()[0])
 t0 = wp.zeros(cap, dtype=wp.int64, device=DEV); t1 = wp.zeros(cap, dtype=wp.int64, device=DEV)
 sm = wp.zeros(cap, dtype=int, device=DEV); od = wp.zeros(cap, dtype=float, device=DEV)
-inputs = list(inputs); inputs[-1] = D.UNLIMITED_VISITS
 report = {"corners": n}
 order = wp.zeros(cap, dtype=int, device=DEV)
 for block, use_order in ((128, 0), (32, 0), (128, 1)):

@@ -1,13 +1,17 @@
 """Probe, not part of the product (python3 bench/probes/probe_split.py MESH.npz [device]; results in
 docs/results/probe-split-*): corner searches where corners far from the surface last frame go
 straight to the subtree split, and the rest search whole (or with a budget)."""
-import sys, json, numpy as np, warp as wp
-wp.config.log_level = wp.LOG_ERROR
-wp.init()
-from badf.server.adf import DistanceField
+import sys
+import time
+
+import numpy as np
+import warp as wp
+
 from badf.server.adf import _distance as D
 from badf.server.adf._bvh import BvhView
-from badf.server.adf._geometry import morton3, pack_distance_leaf
+
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from _capture import captured_search  # noqa: E402
 
 @wp.kernel(enable_backward=False)
 def searches(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int32), capacity: int, origin: wp.vec3,
@@ -21,13 +25,8 @@ def searches(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int
     if i >= wp.min(count[0], capacity):
         return
     p = D._lattice_point(corner_keys[i], origin, cell)
-    q = (p - previous_origin) * previous_inv_cell
-    top = 1 << depth
-    previous_key = morton3(wp.clamp(int(wp.round(q[0])), 0, top), wp.clamp(int(wp.round(q[1])), 0, top),
-                           wp.clamp(int(wp.round(q[2])), 0, top))
-    listed = wp.min(previous_count[0], previous_capacity)
-    slot = wp.min(D._search_sorted(previous_keys, listed, previous_key), listed - 1)
-    seed = bvh.face_leaf[previous_face[slot]]
+    seed = D.coherent_seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity,
+                           previous_origin, previous_inv_cell)
     b = budget
     if far[i] != 0:
         b = 0
@@ -35,29 +34,12 @@ def searches(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int
     distance[i] = wp.sqrt(best_sq)
     nearest[i] = best_leaf
     if not finished:
-        item = wp.atomic_add(long_count, 0, 1)
-        long_corner[item] = i
-        long_bound[item] = best_sq
-        long_best[item] = pack_distance_leaf(best_sq, best_leaf)
+        D.list_long_search(i, best_sq, best_leaf, long_count, long_corner, long_bound, long_best)
 
 DEV = sys.argv[2] if len(sys.argv) > 2 else "cuda:0"
-d = np.load(sys.argv[1]); v, f = d["vertices"], d["faces"]
-field = DistanceField(v, f, depth=7, device=DEV); field.use_graphs = False
-field.update(v * np.float32(1.001))
-captured = {}
-real_launch = wp.launch
-def spy(kernel, *args, **kwargs):
-    if kernel is D.corner_searches:
-        captured["inputs"] = list(kwargs["inputs"])
-    return real_launch(kernel, *args, **kwargs)
-wp.launch = spy
-field.update(v * np.float32(1.002))
-wp.launch = real_launch
-inputs = captured["inputs"][:-1]
+field, inputs, n, truth = captured_search(sys.argv[1], DEV)
 cap, cell = inputs[2], inputs[4]
 keys, origin, bvh = inputs[0], inputs[3], inputs[7]
-n = int(inputs[1].numpy()[0])
-truth = np.abs(field._corners.value.numpy()[:n])
 cells = truth / cell
 z = lambda dt: wp.zeros(cap, dtype=dt, device=DEV)
 dist, near, lc, lb, lbest = z(float), z(int), z(int), z(float), z(wp.int64)
@@ -75,9 +57,7 @@ for K, budget, levels in [(None, 2**31 - 1, 6), (None, 128, 6), (8, 2**31 - 1, 6
     times = []
     for rep in range(5):
         wp.synchronize()
-        import time
         cpu = DEV == "cpu"
-        mark = (lambda: time.perf_counter()) if cpu else None
         if not cpu:
             e0 = wp.Event(enable_timing=True); e1 = wp.Event(enable_timing=True); e2 = wp.Event(enable_timing=True)
         lcount.zero_()

@@ -333,6 +333,35 @@ def _lattice_point(key: wp.int64, origin: wp.vec3, cell: float) -> wp.vec3:
     return origin + wp.vec3(float(lattice[0]), float(lattice[1]), float(lattice[2])) * cell
 
 
+@wp.func
+def coherent_seed(bvh: BvhView, p: wp.vec3, depth: int, previous_keys: wp.array(dtype=wp.int64),
+                  previous_face: wp.array(dtype=wp.int32), previous_count: wp.array(dtype=wp.int32),
+                  previous_capacity: int, previous_origin: wp.vec3, previous_inv_cell: float) -> int:
+    """The leaf of the face nearest last frame's nearest lattice point to p (the same point while the
+    domain stays), or its neighbour in Morton order: that face bounds p's search either way."""
+    q = (p - previous_origin) * previous_inv_cell
+    top = 1 << depth
+    previous_key = morton3(
+        wp.clamp(int(wp.round(q[0])), 0, top),
+        wp.clamp(int(wp.round(q[1])), 0, top),
+        wp.clamp(int(wp.round(q[2])), 0, top),
+    )
+    listed = wp.min(previous_count[0], previous_capacity)
+    slot = wp.min(_search_sorted(previous_keys, listed, previous_key), listed - 1)
+    return bvh.face_leaf[previous_face[slot]]
+
+
+@wp.func
+def list_long_search(corner: int, best_sq: float, best_leaf: int, long_count: wp.array(dtype=wp.int32),
+                     long_corner: wp.array(dtype=wp.int32), long_bound: wp.array(dtype=wp.float32),
+                     long_best: wp.array(dtype=wp.int64)):
+    """A search too long for one thread: _split_searches takes it on from the bound it reached."""
+    item = wp.atomic_add(long_count, 0, 1)
+    long_corner[item] = corner
+    long_bound[item] = best_sq
+    long_best[item] = pack_distance_leaf(best_sq, best_leaf)
+
+
 @wp.kernel(enable_backward=False)
 def corner_searches(
     corner_keys: wp.array(dtype=wp.int64),
@@ -373,18 +402,8 @@ def corner_searches(
     p = _lattice_point(corner_keys[i], origin, cell)
     seed = int(-1)
     if coherent != 0:
-        # last frame's nearest lattice point (the same one while the domain stays), or its neighbour in
-        # Morton order: its nearest face bounds this search either way
-        q = (p - previous_origin) * previous_inv_cell
-        top = 1 << depth
-        previous_key = morton3(
-            wp.clamp(int(wp.round(q[0])), 0, top),
-            wp.clamp(int(wp.round(q[1])), 0, top),
-            wp.clamp(int(wp.round(q[2])), 0, top),
-        )
-        listed = wp.min(previous_count[0], previous_capacity)
-        slot = wp.min(_search_sorted(previous_keys, listed, previous_key), listed - 1)
-        seed = bvh.face_leaf[previous_face[slot]]
+        seed = coherent_seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity,
+                             previous_origin, previous_inv_cell)
     else:
         seed = spatial_seed(bvh, p, origin, inv_side)
     best_leaf, best_sq, finished = _nearest_with_band(bvh, p, seed, band, budget)
@@ -395,11 +414,7 @@ def corner_searches(
         distance[i] = band
         nearest[i] = -1 - seed
     if not finished:
-        # too long for one thread: _split_searches takes it on from the bound reached
-        item = wp.atomic_add(long_count, 0, 1)
-        long_corner[item] = i
-        long_bound[item] = best_sq
-        long_best[item] = pack_distance_leaf(best_sq, best_leaf)
+        list_long_search(i, best_sq, best_leaf, long_count, long_corner, long_bound, long_best)
 
 
 @wp.kernel(enable_backward=False)
