@@ -1,0 +1,97 @@
+"""The engine's topology analysis against a plain reference: the same welding, edges, orientation checks
+and adjacency lists, field for field, on meshes with seams, holes, repeated vertices, non-manifold and
+inconsistently oriented edges, and -0.0 beside 0.0."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import meshes
+from badf.server.adf._sign import analyse_topology
+
+
+def reference_topology(faces: np.ndarray, vertices: np.ndarray) -> dict:
+    """The same analysis written the obvious way (np.unique by rows and by keys, numpy's stable sorts)."""
+    m = len(faces)
+    _, welded_id, welded_count = np.unique(vertices + 0.0, axis=0, return_inverse=True, return_counts=True)
+    vertex_count = len(welded_count)
+    f = welded_id.reshape(-1)[faces].astype(np.int64)
+    repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
+    end = np.roll(f, -1, axis=1)
+    keys = np.minimum(f, end) * vertex_count + np.maximum(f, end)
+    usable = np.repeat(~repeated[:, None], 3, axis=1)
+    edge_keys, inverse, counts = np.unique(keys[usable], return_inverse=True, return_counts=True)
+    edge_count = len(edge_keys)
+    face_edge = np.full((m, 3), edge_count, dtype=np.int32)
+    face_edge[usable] = inverse
+    orientation_sum = np.bincount(inverse, weights=np.where(f < end, 1, -1)[usable], minlength=edge_count)
+    face_of_slot = np.repeat(np.arange(m), 3).reshape(m, 3)[usable]
+    edge_face_start = np.zeros(edge_count + 2, dtype=np.int32)
+    edge_face_start[1 : edge_count + 1] = np.cumsum(counts)
+    edge_face_start[edge_count + 1] = edge_face_start[edge_count]
+    vertex_of_corner = f.reshape(-1)
+    vertex_corner_start = np.zeros(vertex_count + 1, dtype=np.int32)
+    vertex_corner_start[1:] = np.cumsum(np.bincount(vertex_of_corner, minlength=vertex_count))
+    return {
+        "welded_faces": f.astype(np.int32),
+        "welded_count": vertex_count,
+        "face_edge": face_edge,
+        "edge_count": edge_count,
+        "edge_face_start": edge_face_start,
+        "edge_face": face_of_slot[np.argsort(inverse, kind="stable")].astype(np.int32),
+        "vertex_corner_start": vertex_corner_start,
+        "vertex_corner": np.argsort(vertex_of_corner, kind="stable").astype(np.int32),
+        "boundary_edges": int(np.sum(counts == 1)),
+        "nonmanifold_edges": int(np.sum(counts > 2)),
+        "inconsistent_edges": int(np.sum((counts == 2) & (orientation_sum != 0))),
+        "repeated_vertex_faces": int(np.sum(repeated)),
+    }
+
+
+def _awkward() -> tuple[np.ndarray, np.ndarray]:
+    """A sphere with a seam of duplicated vertices (one at -0.0), a flipped face, a fin on one edge (three
+    faces there), a face naming a vertex twice, and a hole."""
+    vertices, faces = meshes.sphere()
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64).copy()
+    zero = np.flatnonzero(vertices[:, 0] == 0.0)[:1]
+    copies = np.concatenate([vertices[:40], vertices[zero] * np.array([-1.0, 1.0, 1.0])])  # -0.0 in x
+    seam = np.arange(len(vertices), len(vertices) + 40)
+    vertices = np.concatenate([vertices, copies])
+    faces[:20] = np.where(faces[:20] < 40, seam[np.minimum(faces[:20], 39)], faces[:20])  # seam: same positions
+    faces[30] = faces[30, ::-1]  # flipped
+    a, b = faces[50, 0], faces[50, 1]
+    extra = np.array([[a, b, len(vertices) - 1], [a, a, b]])  # fin, repeated vertex
+    faces = np.concatenate([np.delete(faces, [60, 61], axis=0), extra])  # and a hole
+    return vertices, faces
+
+
+CASES = {
+    "bunny": lambda: meshes.load("stanford-bunny"),
+    "spot (UV seams)": lambda: meshes.load("spot"),
+    "sheet": meshes.sheet,
+    "single triangle": meshes.single_triangle,
+    "awkward sphere": _awkward,
+}
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_topology_matches_the_reference(name):
+    vertices, faces = CASES[name]()
+    got = dataclasses.asdict(analyse_topology(np.asarray(faces), np.asarray(vertices)))
+    expected = reference_topology(np.asarray(faces), np.asarray(vertices))
+    assert got.keys() == expected.keys()
+    for key, value in expected.items():
+        np.testing.assert_array_equal(got[key], value, err_msg=key)
+
+
+def test_the_awkward_sphere_has_every_defect():
+    """So that the comparison above covers each branch of the analysis."""
+    vertices, faces = _awkward()
+    topology = analyse_topology(faces, vertices)
+    assert topology.boundary_edges > 0 and topology.nonmanifold_edges > 0
+    assert topology.inconsistent_edges > 0 and topology.repeated_vertex_faces > 0
+    assert topology.welded_count < len(vertices)  # the seam and the -0.0 copy were welded
