@@ -169,7 +169,7 @@ def measure_traversals(field, vertices, faces, *, device: str, repeat: int) -> d
     (what coherence gives). Distances only, no sign; mismatches are counted against each other."""
     import warp as wp
 
-    from badf.server.adf._bvh import BvhView, leaf_distance_sq, nearest_leaf
+    from badf.server.adf._bvh import UNLIMITED_VISITS, BvhView, leaf_distance_sq, nearest_leaf_within
 
     @wp.kernel(enable_backward=False)
     def ours(bvh: BvhView, points: wp.array(dtype=wp.vec3), seeds: wp.array(dtype=wp.int32), use_seed: int,
@@ -181,7 +181,7 @@ def measure_traversals(field, vertices, faces, *, device: str, repeat: int) -> d
         if use_seed != 0:
             best = seeds[i]
             best_sq = leaf_distance_sq(bvh, best, p)
-        leaf, d_sq = nearest_leaf(bvh, p, best, best_sq)
+        leaf, d_sq, finished = nearest_leaf_within(bvh, p, best, best_sq, UNLIMITED_VISITS)
         out[i] = wp.sqrt(d_sq)
 
     @wp.kernel(enable_backward=False)

@@ -257,12 +257,14 @@ def _nearest_in_range(bvh: BvhView, p: wp.vec3, first: int, count: int, best_lea
 
 
 @wp.func
-def nearest_leaf(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float):
-    """Nearest leaf to p among those strictly closer than sqrt(best_sq); (best_leaf, best_sq) if none."""
+def nearest_leaf_within(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float, budget: int):
+    """Nearest leaf to p among those strictly closer than sqrt(best_sq), in at most `budget` node visits:
+    (best_leaf, best_sq, finished); (best_leaf, best_sq) stand if there is none."""
     if bvh.internal_count == 0:
-        return _nearest_in_range(bvh, p, 0, 1, best_leaf, best_sq)
-    best_leaf, best_sq, done = nearest_in_subtree(bvh, p, 0, best_leaf, best_sq, UNLIMITED_VISITS)
-    return best_leaf, best_sq
+        best_leaf, best_sq = _nearest_in_range(bvh, p, 0, 1, best_leaf, best_sq)
+        return best_leaf, best_sq, True
+    best_leaf, best_sq, finished = nearest_in_subtree(bvh, p, 0, best_leaf, best_sq, budget)
+    return best_leaf, best_sq, finished
 
 
 @wp.func

@@ -19,8 +19,7 @@ from badf.server.adf._bvh import (
     leaf_distance_sq,
     leaf_triangle,
     nearest_in_slot,
-    nearest_in_subtree,
-    nearest_leaf,
+    nearest_leaf_within,
     spatial_seed,
 )
 from badf.server.adf._geometry import (
@@ -270,10 +269,7 @@ def _nearest_with_band(bvh: BvhView, p: wp.vec3, seed: int, band: float, budget:
     if band > 0.0 and band * band < best_sq:
         best = -1
         best_sq = band * band
-    if bvh.internal_count == 0:
-        best, best_sq = nearest_leaf(bvh, p, best, best_sq)
-        return best, best_sq, True
-    best, best_sq, finished = nearest_in_subtree(bvh, p, 0, best, best_sq, budget)
+    best, best_sq, finished = nearest_leaf_within(bvh, p, best, best_sq, budget)
     return best, best_sq, finished
 
 
