@@ -175,6 +175,9 @@ class CornerField:
         wp.launch(sign_kernel(sign.method), dim=capacity, inputs=[corner_keys, count, capacity, origin, cell, bvh, sign],
                   outputs=[self.value, self.leaf], device=self.device, block_dim=SIGN_BLOCK_DIM)
         self.coherent = use_previous
+        if not coherent:
+            self._next = None  # nothing is carried to the next frame
+            return
         # this frame's corners and their nearest faces, for the next frame once this one is kept (the keys
         # past the count are UNLISTED, after every lattice key, so a binary search over them needs no count)
         next_keys = b.ensure("corner.next_keys", capacity, wp.int64)
@@ -189,6 +192,8 @@ class CornerField:
         """Make the last computed frame's faces the next frame's starting bounds. A frame that outgrew its
         planned sizes is not kept: the frame run again in its place starts from the same bounds, so its
         answer (down to which of two equally near faces is named) does not depend on the failed run."""
+        if self._next is None:
+            return
         next_keys, next_face, capacity, centre, side = self._next
         b = self.buffers
         self._previous_keys = b.ensure("corner.prev_keys", capacity, wp.int64)
