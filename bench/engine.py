@@ -37,6 +37,15 @@ def _time_wall(fn, device, repeat: int) -> list[float]:
     return out
 
 
+def _time_updates(field, frames, device: str) -> tuple[list[float], list[dict]]:
+    """Each frame's update: wall ms, and the field's per-stage times."""
+    walls, stages = [], []
+    for frame in frames:
+        walls += _time_wall(lambda _: field.update(frame), device, 1)
+        stages.append(field.stats()["times_ms"])
+    return walls, stages
+
+
 def measure_field(vertices, faces, *, device: str, repeat: int, **options) -> dict:
     """Build and coherent-update times (median), per-stage medians, counts and memory of one configuration."""
     from badf.server.adf import DistanceField
@@ -58,21 +67,14 @@ def measure_field(vertices, faces, *, device: str, repeat: int, **options) -> di
         build_stages.append(field.stats()["times_ms"])
     # a new frame every time: the wobble advances 0.02 of its period per frame
     frames = [deform(vertices, 0.02 * k) for k in range(repeat + 1)]
-    update_stages = []
-    updates = []
-    for i in range(1, repeat + 1):
-        updates += _time_wall(lambda _, frame=frames[i]: field.update(frame), device, 1)
-        update_stages.append(field.stats()["times_ms"])
+    updates, update_stages = _time_updates(field, frames[1:], device)
     stats = field.stats()
     # frames thrown half the mesh's extent further along x each time: every one moves the domain (and
     # rebuilds the BVH); on another object, so the queries below see the coherent frames' field
     mover = DistanceField(vertices, faces, device=device, **field_options)
     mover.use_graphs = graphs
     step = np.array([0.5 * float(np.max(vertices.max(axis=0) - vertices.min(axis=0))), 0.0, 0.0], vertices.dtype)
-    moving, moving_stages = [], []
-    for i in range(1, repeat + 1):
-        moving += _time_wall(lambda _, frame=frames[i] + i * step: mover.update(frame), device, 1)
-        moving_stages.append(mover.stats()["times_ms"])
+    moving, moving_stages = _time_updates(mover, [frames[i] + i * step for i in range(1, repeat + 1)], device)
     mover_stats = mover.stats()
 
     def stage_medians(stage_list):

@@ -1,7 +1,7 @@
 """Probe, not part of the product (python3 bench/probes/probe_persistent.py MESH.npz [device]): corner
 searches by persistent threads that take corners one at a time from a shared counter, stop after a budget
-of node visits and list the rest for the subtree split (the engine's _split_searches), against one thread
-per corner."""
+of node visits and list the rest for the subtree split (the engine's _split_searches), against the engine's
+own kernel, one thread per corner."""
 import sys
 import time
 
@@ -38,27 +38,6 @@ def persistent(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.i
 
 
 @wp.kernel(enable_backward=False)
-def one_each(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int32), capacity: int, origin: wp.vec3,
-             cell: float, inv_side: float, depth: int, bvh: BvhView, band: float, coherent: int,
-             previous_keys: wp.array(dtype=wp.int64), previous_face: wp.array(dtype=wp.int32),
-             previous_count: wp.array(dtype=wp.int32), previous_capacity: int, previous_origin: wp.vec3,
-             previous_inv_cell: float, budget: int, next_item: wp.array(dtype=int),
-             distance: wp.array(dtype=float), nearest: wp.array(dtype=int), long_count: wp.array(dtype=int),
-             long_corner: wp.array(dtype=int), long_bound: wp.array(dtype=float), long_best: wp.array(dtype=wp.int64)):
-    i = wp.tid()
-    if i >= wp.min(count[0], capacity):
-        return
-    p = D._lattice_point(corner_keys[i], origin, cell)
-    seed = D.coherent_seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity,
-                           previous_origin, previous_inv_cell)
-    best_leaf, best_sq, finished = D._nearest_with_band(bvh, p, seed, band, budget)
-    distance[i] = wp.sqrt(best_sq)
-    nearest[i] = best_leaf
-    if not finished:
-        D.list_long_search(i, best_sq, best_leaf, long_count, long_corner, long_bound, long_best)
-
-
-@wp.kernel(enable_backward=False)
 def split_pairs(corner_keys: wp.array(dtype=wp.int64), origin: wp.vec3, cell: float, bvh: BvhView,
                 cut: wp.array(dtype=wp.int32), levels: int, next_pair: wp.array(dtype=int),
                 long_count: wp.array(dtype=wp.int32), long_corner: wp.array(dtype=wp.int32),
@@ -88,11 +67,12 @@ lcount = wp.zeros(1, dtype=int, device=DEV)
 counter = wp.zeros(1, dtype=int, device=DEV)
 sms = wp.get_device(DEV).sm_count if DEV != "cpu" else 1
 UNL = 2**31 - 1
-cases = [("one per corner", one_each, cap, UNL, 6, False), ("one per corner", one_each, cap, 128, 6, False)]
+cases = [("one per corner", D.corner_searches, cap, UNL, 6, False),
+         ("one per corner", D.corner_searches, cap, 128, 6, False)]
 for budget in (32, 64, 128):
     for levels in (4, 6, 8):
         cases.append(("persistent 2048/SM, pair split", persistent, sms * 2048, budget, levels, True))
-        cases.append(("one per corner, pair split", one_each, cap, budget, levels, True))
+        cases.append(("one per corner, pair split", D.corner_searches, cap, budget, levels, True))
 counter2 = wp.zeros(1, dtype=int, device=DEV)
 for name, kernel, threads, budget, levels, pairs in cases:
     cut = field._bvh.cut(levels)
@@ -105,7 +85,8 @@ for name, kernel, threads, budget, levels, pairs in cases:
         if DEV != "cpu":
             e0, e1, e2 = (wp.Event(enable_timing=True) for _ in range(3))
             wp.record_event(e0)
-        wp.launch(kernel, dim=threads, inputs=inputs + [budget, counter], outputs=[dist, near, lcount, lc, lb, lbest],
+        shared = [counter] if kernel is persistent else []  # the engine's kernel: one thread per corner
+        wp.launch(kernel, dim=threads, inputs=inputs + [budget] + shared, outputs=[dist, near, lcount, lc, lb, lbest],
                   device=DEV, block_dim=128)
         c1 = time.perf_counter()
         if DEV != "cpu":
