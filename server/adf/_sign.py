@@ -201,7 +201,8 @@ class Pseudonormals:
         self.volume_area = b.array("sign.volume_area", 2, wp.float32)  # this frame's enclosed volume, area
         self.extent = b.array("sign.extent", 1, wp.float32)  # this frame's largest bounding-box side
         self.winding_frame = b.array("sign.winding_frame", 1, wp.int32)
-        self.frame_method = method  # what this frame used (set_frame_method): pseudonormal frames that enclose nothing use winding
+        # what the last frame used (set_frame_method): pseudonormal frames that enclose nothing use winding
+        self.frame_method = method
 
     def upload_extent(self, extent: float) -> None:
         """The frame's extent, which the enclosed-volume test scales with (sent with the vertices)."""
