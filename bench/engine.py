@@ -48,11 +48,24 @@ def _time_updates(field, frames, device: str) -> tuple[list[float], list[dict]]:
 
 def measure_field(vertices, faces, *, device: str, repeat: int, **options) -> dict:
     """Build and coherent-update times (median), per-stage medians, counts and memory of one configuration."""
+    # graphs=False: planned frames run their kernels one by one instead of replaying a captured CUDA graph;
+    # winding_beside=False: winding numbers queued after the searches instead of on a stream beside them
+    from badf.server.adf._distance import CornerField
+
+    field_options = {k: v for k, v in options.items() if k not in ("graphs", "winding_beside")}
+    graphs = options.get("graphs", True)
+    CornerField.winding_beside = options.get("winding_beside", True)
+    try:
+        return _measure_field(vertices, faces, device=device, repeat=repeat, options=options, graphs=graphs,
+                              field_options=field_options)
+    finally:
+        CornerField.winding_beside = True
+
+
+def _measure_field(vertices, faces, *, device: str, repeat: int, options: dict, graphs: bool,
+                   field_options: dict) -> dict:
     from badf.server.adf import DistanceField
 
-    # graphs=False: planned frames run their kernels one by one instead of replaying a captured CUDA graph
-    field_options = {k: v for k, v in options.items() if k != "graphs"}
-    graphs = options.get("graphs", True)
     field = DistanceField(vertices, faces, device=device, **field_options)  # warm-up: compiles kernels
     field.update(deform(vertices, 0.5))
     builds, build_stages = [], []
@@ -361,13 +374,16 @@ def measure_register_caps(vertices, faces, *, depth: int, device: str, repeat: i
     import warp as wp
     from badf.server.adf import DistanceField
     from badf.server.adf import _distance
-    from badf.server.adf._sign import _SIGN_CODES
+    from badf.server.adf._sign import _SIGN_CODES, SIGN_WINDING
 
     field = DistanceField(vertices, faces, depth=depth, device=device)
     field.use_graphs = False
     method = _SIGN_CODES[field.info()["sign"]]
     frames = [deform(vertices, 0.5 + 0.02 * k) for k in range(repeat + 1)]
-    searches, signs = _distance.corner_searches, _distance.sign_kernel(method)
+    # with winding numbers the costly sign kernel is the one that computes them, beside the searches
+    sign_key = ("winding", method) if method == SIGN_WINDING else ("sign", method)
+    searches = _distance.corner_searches
+    signs = _distance.winding_kernel() if method == SIGN_WINDING else _distance.sign_kernel(method)
     rows = []
     try:
         for cap in caps:
@@ -376,7 +392,7 @@ def measure_register_caps(vertices, faces, *, depth: int, device: str, repeat: i
             else:
                 variants = tuple(wp.kernel(k.func, enable_backward=False, cuda_max_registers=cap, module="unique",
                                            name=f"{k.key}_cap{cap}") for k in (searches, signs))
-            _distance.corner_searches, _distance._KERNELS[("sign", method)] = variants
+            _distance.corner_searches, _distance._KERNELS[sign_key] = variants
             searches_ms, signs_ms = _corner_kernel_ms(field, frames, device)
             properties = [wp.get_cuda_kernel_properties(k, device, block_dim=_distance.SEARCH_BLOCK_DIM) for k in variants]
             rows.append({"cap": cap, "searches_ms": searches_ms,
@@ -386,7 +402,7 @@ def measure_register_caps(vertices, faces, *, depth: int, device: str, repeat: i
                          "signs_registers": properties[1]["register_count"],
                          "signs_local_bytes": properties[1]["local_memory_size"]})
     finally:
-        _distance.corner_searches, _distance._KERNELS[("sign", method)] = searches, signs
+        _distance.corner_searches, _distance._KERNELS[sign_key] = searches, signs
     return {"depth": depth, "corners": field.stats()["counts"]["unique_corners"], "sign": field.info()["sign"],
             "rows": rows}
 
@@ -463,6 +479,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.quick:
         configs += [
             {"depth": args.depth, "graphs": False},
+            {"depth": args.depth, "winding_beside": False},
             {"depth": args.depth, "coherence": False},
             {"depth": args.depth, "sign": "pseudonormal"},
             {"depth": args.depth, "sign": "none"},

@@ -107,6 +107,10 @@ class CornerField:
     rebuilt (faces, not leaves, are kept).
     """
 
+    # On CUDA, winding numbers run on a second stream beside the searches; False queues them after the
+    # searches on the frame's own stream (kept for `badf bench engine` to compare the two).
+    winding_beside = True
+
     def __init__(self, buffers: DeviceBuffers):
         self.buffers = buffers
         self.device = buffers.device
@@ -123,6 +127,7 @@ class CornerField:
         self._previous_side = 0.0
         self.split: SearchSplit | None = None  # None: SearchSplit.automatic for each compute
         self._last_split = _WHOLE
+        self._beside: wp.Stream | None = None  # the winding numbers' stream (CUDA), made on first use
 
     def compute(self, corner_keys: wp.array, count: wp.array, capacity: int, expected_count: int, bvh: BvhView, cuts,
                 sign: SignView, centre: np.ndarray, side: float, depth: int, band: float | None, *,
@@ -153,6 +158,9 @@ class CornerField:
         long_best = b.ensure("corner.long_best", capacity if splitting else 1, wp.int64)
         if splitting:
             long_count.zero_()
+        by_winding = sign.method == SIGN_WINDING
+        inside = b.ensure("corner.inside", capacity if by_winding else 1, wp.uint8)
+        beside = self._fork() if by_winding else None
         wp.launch(
             corner_searches,
             dim=capacity,
@@ -172,7 +180,13 @@ class CornerField:
                       outputs=[long_best], device=self.device)
             wp.launch(_gather_split, dim=split.groups, inputs=[split.groups, long_count, long_corner, long_best],
                       outputs=[self.value, self.leaf], device=self.device)
-        wp.launch(sign_kernel(sign.method), dim=capacity, inputs=[corner_keys, count, capacity, origin, cell, bvh, sign],
+        if by_winding:
+            # launched after the searches, so that eagerly (not from a graph) the searches' blocks start first
+            wp.launch(winding_kernel(), dim=capacity, inputs=[corner_keys, count, capacity, origin, cell, bvh],
+                      outputs=[inside], device=self.device, block_dim=SIGN_BLOCK_DIM, stream=beside)
+            self._join(beside)
+        wp.launch(sign_kernel(sign.method), dim=capacity,
+                  inputs=[corner_keys, count, capacity, origin, cell, bvh, sign, inside],
                   outputs=[self.value, self.leaf], device=self.device, block_dim=SIGN_BLOCK_DIM)
         self.coherent = use_previous
         if not coherent:
@@ -187,6 +201,23 @@ class CornerField:
         wp.launch(_leaf_faces, dim=capacity, inputs=[self.leaf, count, capacity, bvh], outputs=[next_face],
                   device=self.device)
         self._next = (next_keys, next_face, capacity, np.asarray(centre, dtype=np.float64).copy(), side)
+
+    def _fork(self) -> wp.Stream | None:
+        """A second stream that has waited for everything queued so far on the current one (CUDA), else
+        None: work launched on it runs beside what is queued next on the current stream, in a captured
+        graph as well (the wait becomes an edge)."""
+        if not (self.device.is_cuda and self.winding_beside):
+            return None
+        if self._beside is None:
+            self._beside = wp.Stream(self.device)
+            self._forked, self._joined = wp.Event(self.device), wp.Event(self.device)
+        self._beside.wait_stream(wp.get_stream(self.device), self._forked)
+        return self._beside
+
+    def _join(self, beside: wp.Stream | None) -> None:
+        """The current stream waits for the work launched on `beside`."""
+        if beside is not None:
+            wp.get_stream(self.device).wait_stream(beside, self._joined)
 
     def keep_frame(self) -> None:
         """Make the last computed frame's faces the next frame's starting bounds. A frame that outgrew its
@@ -478,10 +509,12 @@ def _make_sign_kernel(method: int) -> wp.Kernel:
         cell: float,
         bvh: BvhView,
         sign: SignView,
+        inside_by_winding_number: wp.array(dtype=wp.uint8),
         value: wp.array(dtype=wp.float32),
         nearest: wp.array(dtype=wp.int32),
     ):
-        """Sign each corner's distance; where nothing lay within the band, the seed becomes its leaf."""
+        """Sign each corner's distance; where nothing lay within the band, the seed becomes its leaf. With
+        winding numbers the sides come from `winding_corners`, run beside the searches."""
         i = wp.tid()
         if i >= wp.min(count[0], capacity):
             return
@@ -499,11 +532,41 @@ def _make_sign_kernel(method: int) -> wp.Kernel:
                 else:
                     inside = inside_by_winding(bvh, p)
             if wp.static(winding):
-                inside = inside_by_winding(bvh, p)
+                inside = inside_by_winding_number[i] != wp.uint8(0)
             if inside:
                 value[i] = -value[i]
 
     return wp.kernel(sign_corners, name=f"sign_corners_{method}", enable_backward=False, module="unique",
+                     cuda_max_registers=SIGN_MAX_REGISTERS)
+
+
+def winding_kernel() -> wp.Kernel:
+    """Whether each corner is inside by its winding number. It needs only the corners and the refitted BVH,
+    not the searches' nearest faces, so on CUDA it runs on a stream of its own beside them and fills the SMs
+    that the searches' longest walks leave idle."""
+    key = ("winding", SIGN_WINDING)
+    if key not in _KERNELS:
+        _KERNELS[key] = _make_winding_kernel()
+    return _KERNELS[key]
+
+
+def _make_winding_kernel() -> wp.Kernel:
+    def sign_corners_by_winding(
+        corner_keys: wp.array(dtype=wp.int64),
+        count: wp.array(dtype=wp.int32),
+        capacity: int,
+        origin: wp.vec3,
+        cell: float,
+        bvh: BvhView,
+        inside: wp.array(dtype=wp.uint8),
+    ):
+        i = wp.tid()
+        if i >= wp.min(count[0], capacity):
+            return
+        p = _lattice_point(corner_keys[i], origin, cell)
+        inside[i] = wp.where(inside_by_winding(bvh, p), wp.uint8(1), wp.uint8(0))
+
+    return wp.kernel(sign_corners_by_winding, name="sign_corners_by_winding", enable_backward=False, module="unique",
                      cuda_max_registers=SIGN_MAX_REGISTERS)
 
 
