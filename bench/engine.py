@@ -49,17 +49,18 @@ def _time_updates(field, frames, device: str) -> tuple[list[float], list[dict]]:
 def measure_field(vertices, faces, *, device: str, repeat: int, **options) -> dict:
     """Build and coherent-update times (median), per-stage medians, counts and memory of one configuration."""
     # graphs=False: planned frames run their kernels one by one instead of replaying a captured CUDA graph;
-    # winding_beside=False: winding numbers queued after the searches instead of on a stream beside them
-    from badf.server.adf._distance import CornerField
+    # one_stream=True: no work beside the frame's stream (BVH refit beside the octree, winding numbers beside
+    # the searches): all of it queued in order
+    from badf.server.adf._buffers import SideStream
 
-    field_options = {k: v for k, v in options.items() if k not in ("graphs", "winding_beside")}
+    field_options = {k: v for k, v in options.items() if k not in ("graphs", "one_stream")}
     graphs = options.get("graphs", True)
-    CornerField.winding_beside = options.get("winding_beside", True)
+    SideStream.allowed = not options.get("one_stream", False)
     try:
         return _measure_field(vertices, faces, device=device, repeat=repeat, options=options, graphs=graphs,
                               field_options=field_options)
     finally:
-        CornerField.winding_beside = True
+        SideStream.allowed = True
 
 
 def _measure_field(vertices, faces, *, device: str, repeat: int, options: dict, graphs: bool,
@@ -327,13 +328,14 @@ def measure_kernels(vertices, faces, *, depth: int, device: str, repeat: int) ->
     }
 
 
-def _corner_kernel_ms(field, frames, device: str) -> tuple[float, float]:
-    """Median device time (ms) of the corner searches and of the corner signs over frames[1:] (CUDA
-    activity timing), after frames[0] settles the field's sizes."""
+def _corner_kernel_ms(field, frames, device: str) -> tuple[float, float, float]:
+    """Median device time (ms) of the corner searches, of the corner signs (their kernels' CUDA activity
+    timing) and of the whole distance stage (its events: with winding numbers beside the searches, the
+    two kernels overlap) over frames[1:], after frames[0] settles the field's sizes."""
     import warp as wp
 
     field.update(frames[0])
-    searches, signs = [], []
+    searches, signs, stage = [], [], []
     for frame in frames[1:]:
         wp.synchronize_device(device)
         wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
@@ -341,13 +343,13 @@ def _corner_kernel_ms(field, frames, device: str) -> tuple[float, float]:
         results = wp.timing_end()
         searches.append(sum(r.elapsed for r in results if "corner_searches" in r.name))
         signs.append(sum(r.elapsed for r in results if "sign_corners" in r.name))
-    return round(_median(searches), 4), round(_median(signs), 4)
+        stage.append(field.stats()["times_ms"]["distances"])
+    return round(_median(searches), 4), round(_median(signs), 4), round(_median(stage), 4)
 
 
 def measure_block_dims(vertices, faces, *, depth: int, device: str, repeat: int, dims=(32, 64, 128, 256)) -> dict:
-    """Device time of the corner searches and the corner signs for each threads-per-block choice (CUDA
-    activity timing over `repeat` coherent updates, kernels launched one by one)."""
-    import warp as wp
+    """Device time of the corner searches, the corner signs and the distance stage for each threads-per-block
+    choice (over `repeat` coherent updates, kernels launched one by one)."""
     from badf.server.adf import DistanceField
     from badf.server.adf import _distance
 
@@ -359,18 +361,20 @@ def measure_block_dims(vertices, faces, *, depth: int, device: str, repeat: int,
     try:
         for dim in dims:
             _distance.SEARCH_BLOCK_DIM = _distance.SIGN_BLOCK_DIM = dim
-            searches_ms, signs_ms = _corner_kernel_ms(field, frames, device)
-            rows.append({"block_dim": dim, "searches_ms": searches_ms, "signs_ms": signs_ms})
+            searches_ms, signs_ms, distances_ms = _corner_kernel_ms(field, frames, device)
+            rows.append({"block_dim": dim, "searches_ms": searches_ms, "signs_ms": signs_ms,
+                         "distances_ms": distances_ms})
     finally:
         _distance.SEARCH_BLOCK_DIM, _distance.SIGN_BLOCK_DIM = default
     return {"depth": depth, "corners": field.stats()["counts"]["unique_corners"], "rows": rows}
 
 
 def measure_register_caps(vertices, faces, *, depth: int, device: str, repeat: int,
-                          caps=(None, 32, 40, 48, 64, 96)) -> dict:
-    """Registers and local memory per thread of the corner searches and the corner signs, compiled with
-    each cap on registers per thread (None: as the engine compiles them), and their device time (CUDA activity
-    timing over `repeat` coherent updates, kernels launched one by one): whether occupancy limits them."""
+                          caps=(32, 40, 48, 64, 96)) -> dict:
+    """Registers and local memory per thread of the corner searches and the costly corner-sign kernel (the
+    winding numbers where the sign is by winding number), each compiled with a cap on registers per thread
+    while the other stays as the engine compiles it, and the device time of both and of the distance stage
+    (over `repeat` coherent updates, kernels launched one by one): whether occupancy limits them."""
     import warp as wp
     from badf.server.adf import DistanceField
     from badf.server.adf import _distance
@@ -380,29 +384,32 @@ def measure_register_caps(vertices, faces, *, depth: int, device: str, repeat: i
     field.use_graphs = False
     method = _SIGN_CODES[field.info()["sign"]]
     frames = [deform(vertices, 0.5 + 0.02 * k) for k in range(repeat + 1)]
-    # with winding numbers the costly sign kernel is the one that computes them, beside the searches
     sign_key = ("winding", method) if method == SIGN_WINDING else ("sign", method)
-    searches = _distance.corner_searches
-    signs = _distance.winding_kernel() if method == SIGN_WINDING else _distance.sign_kernel(method)
+    engines = (_distance.corner_searches,
+               _distance.winding_kernel() if method == SIGN_WINDING else _distance.sign_kernel(method))
+
+    def capped(kernel, cap):
+        return wp.kernel(kernel.func, enable_backward=False, cuda_max_registers=cap, module="unique",
+                         name=f"{kernel.key}_cap{cap}")
+
+    choices = [(None, None)] + [(cap, None) for cap in caps] + [(None, cap) for cap in caps]
     rows = []
     try:
-        for cap in caps:
-            if cap is None:
-                variants = (searches, signs)
-            else:
-                variants = tuple(wp.kernel(k.func, enable_backward=False, cuda_max_registers=cap, module="unique",
-                                           name=f"{k.key}_cap{cap}") for k in (searches, signs))
+        for search_cap, sign_cap in choices:
+            variants = (engines[0] if search_cap is None else capped(engines[0], search_cap),
+                        engines[1] if sign_cap is None else capped(engines[1], sign_cap))
             _distance.corner_searches, _distance._KERNELS[sign_key] = variants
-            searches_ms, signs_ms = _corner_kernel_ms(field, frames, device)
+            searches_ms, signs_ms, distances_ms = _corner_kernel_ms(field, frames, device)
             properties = [wp.get_cuda_kernel_properties(k, device, block_dim=_distance.SEARCH_BLOCK_DIM) for k in variants]
-            rows.append({"cap": cap, "searches_ms": searches_ms,
+            rows.append({"searches_cap": search_cap, "signs_cap": sign_cap, "searches_ms": searches_ms,
                          "searches_registers": properties[0]["register_count"],
                          "searches_local_bytes": properties[0]["local_memory_size"],
                          "signs_ms": signs_ms,
                          "signs_registers": properties[1]["register_count"],
-                         "signs_local_bytes": properties[1]["local_memory_size"]})
+                         "signs_local_bytes": properties[1]["local_memory_size"],
+                         "distances_ms": distances_ms})
     finally:
-        _distance.corner_searches, _distance._KERNELS[sign_key] = searches, signs
+        _distance.corner_searches, _distance._KERNELS[sign_key] = engines
     return {"depth": depth, "corners": field.stats()["counts"]["unique_corners"], "sign": field.info()["sign"],
             "rows": rows}
 
@@ -440,16 +447,18 @@ def run(args: argparse.Namespace) -> int:
             blocks = measure_block_dims(vertices, faces, depth=args.depth, device=device, repeat=repeat)
             profile["block_dims"] = blocks
             print_table(f"corner kernels by threads per block, depth {blocks['depth']}, {blocks['corners']} corners",
-                        ["block dim", "searches ms", "signs ms"],
-                        [[r["block_dim"], r["searches_ms"], r["signs_ms"]] for r in blocks["rows"]])
+                        ["block dim", "searches ms", "signs ms", "distance stage ms"],
+                        [[r["block_dim"], r["searches_ms"], r["signs_ms"], r["distances_ms"]] for r in blocks["rows"]])
         if args.register_sweep and device.startswith("cuda"):
             caps = measure_register_caps(vertices, faces, depth=args.depth, device=device, repeat=repeat)
             profile["register_caps"] = caps
             print_table(f"corner kernels by cap on registers per thread, depth {caps['depth']}, {caps['corners']} "
                         f"corners, sign {caps['sign']}",
-                        ["cap", "searches ms", "registers", "local bytes", "signs ms", "registers", "local bytes"],
-                        [[r["cap"] or "engine's", r["searches_ms"], r["searches_registers"], r["searches_local_bytes"],
-                          r["signs_ms"], r["signs_registers"], r["signs_local_bytes"]] for r in caps["rows"]])
+                        ["searches cap", "searches ms", "registers", "local bytes", "signs cap", "signs ms", "registers",
+                         "local bytes", "distance stage ms"],
+                        [[r["searches_cap"] or "engine's", r["searches_ms"], r["searches_registers"],
+                          r["searches_local_bytes"], r["signs_cap"] or "engine's", r["signs_ms"], r["signs_registers"],
+                          r["signs_local_bytes"], r["distances_ms"]] for r in caps["rows"]])
         if args.out:
             with open(args.out, "w") as f:
                 json.dump({"benchmark": "engine-kernels", "date": timestamp(), "device": bench_device_name(device),
@@ -479,7 +488,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.quick:
         configs += [
             {"depth": args.depth, "graphs": False},
-            {"depth": args.depth, "winding_beside": False},
+            {"depth": args.depth, "one_stream": True},
             {"depth": args.depth, "coherence": False},
             {"depth": args.depth, "sign": "pseudonormal"},
             {"depth": args.depth, "sign": "none"},

@@ -461,6 +461,37 @@ def test_planned_frames_equal_measured_frames(device):
     assert np.abs(values[pick] - truth).max() <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frames[-1])
 
 
+@pytest.mark.parametrize("name,sign", [("stanford-bunny", "winding"), ("spot", "pseudonormal")])
+def test_work_beside_the_frame_stream_gives_the_same_field(device, monkeypatch, name, sign):
+    """On CUDA the BVH's refit runs beside the octree's build and winding numbers beside the searches, on a
+    second stream; the fields equal those of an object that queues everything on one stream, bit for bit,
+    through measured, eager, captured and replayed frames and frames that move the domain."""
+    if not device.startswith("cuda"):
+        pytest.skip("only CUDA runs work beside the frame's stream")
+    from badf.server.adf._buffers import SideStream
+
+    vertices, faces = meshes.load(name)
+    beside = DistanceField(vertices, faces, depth=6, device=device)
+    monkeypatch.setattr(SideStream, "allowed", False)
+    in_order = DistanceField(vertices, faces, depth=6, device=device)
+    monkeypatch.setattr(SideStream, "allowed", True)
+    assert beside.info()["sign"] == in_order.info()["sign"] == sign
+    extent = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
+    frames = [vertices * np.float32(1.0 + 0.01 * k) for k in range(6)]
+    frames += [frames[-1] + np.float32(2.0 * extent), frames[-1] * np.float32(0.97) + np.float32(2.0 * extent)]
+    rng = np.random.default_rng(41)
+    for frame in frames:
+        beside.update(frame)
+        in_order.update(frame)
+        for got, expected in zip(beside.corner_samples(), in_order.corner_samples()):
+            np.testing.assert_array_equal(got, expected)
+        points = query_points(beside, frame, faces, rng, count=500)
+        a, b = (f.query(points, mode="exact", outputs=("distance", "face")) for f in (beside, in_order))
+        np.testing.assert_array_equal(a.distance, b.distance)
+        np.testing.assert_array_equal(a.face, b.face)
+    assert beside.stats()["graph_captures"] >= 1 and beside.stats()["domain_moves"] >= 1
+
+
 def test_a_failed_graph_capture_falls_back_to_kernel_by_kernel(device, monkeypatch, caplog):
     """Where CUDA graphs cannot be captured, planned frames run kernel by kernel and answer the same."""
     if not device.startswith("cuda"):

@@ -60,6 +60,34 @@ def _role(name: str) -> str:
     return "scratch"
 
 
+class SideStream:
+    """A second stream of one object on CUDA, for work that runs beside what its frame's stream queues
+    next: `fork` makes it wait for everything queued so far on the current stream, `join` makes the current
+    stream wait for what was queued on it. Inside a graph capture the two waits become the graph's edges.
+    On the CPU back-end there is none: `fork` gives None, and the work runs in order on the one stream."""
+
+    # False: every object's work queued in order on its one stream (for `badf bench engine` to compare)
+    allowed = True
+
+    def __init__(self, device: wp.Device):
+        self.device = device
+        self.enabled = device.is_cuda and SideStream.allowed
+        self._stream: wp.Stream | None = None
+
+    def fork(self) -> wp.Stream | None:
+        if not self.enabled:
+            return None
+        if self._stream is None:
+            self._stream = wp.Stream(self.device)
+            self._forked, self._joined = wp.Event(self.device), wp.Event(self.device)
+        self._stream.wait_stream(wp.get_stream(self.device), self._forked)
+        return self._stream
+
+    def join(self, stream: wp.Stream | None) -> None:
+        if stream is not None:
+            wp.get_stream(self.device).wait_stream(stream, self._joined)
+
+
 class HostReadback:
     """Reads a few integers back from the device through one small pinned buffer (no allocation per frame)."""
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from badf.server.adf._buffers import DeviceBuffers
+from badf.server.adf._buffers import DeviceBuffers, SideStream
 from badf.server.adf._bvh import (
     UNLIMITED_VISITS,
     BvhView,
@@ -107,10 +107,6 @@ class CornerField:
     rebuilt (faces, not leaves, are kept).
     """
 
-    # On CUDA, winding numbers run on a second stream beside the searches; False queues them after the
-    # searches on the frame's own stream (kept for `badf bench engine` to compare the two).
-    winding_beside = True
-
     def __init__(self, buffers: DeviceBuffers):
         self.buffers = buffers
         self.device = buffers.device
@@ -127,7 +123,7 @@ class CornerField:
         self._previous_side = 0.0
         self.split: SearchSplit | None = None  # None: SearchSplit.automatic for each compute
         self._last_split = _WHOLE
-        self._beside: wp.Stream | None = None  # the winding numbers' stream (CUDA), made on first use
+        self._beside = SideStream(self.device)  # winding numbers run on it, beside the searches
 
     def compute(self, corner_keys: wp.array, count: wp.array, capacity: int, expected_count: int, bvh: BvhView, cuts,
                 sign: SignView, centre: np.ndarray, side: float, depth: int, band: float | None, *,
@@ -160,7 +156,7 @@ class CornerField:
             long_count.zero_()
         by_winding = sign.method == SIGN_WINDING
         inside = b.ensure("corner.inside", capacity if by_winding else 1, wp.uint8)
-        beside = self._fork() if by_winding else None
+        beside = self._beside.fork() if by_winding else None
         wp.launch(
             corner_searches,
             dim=capacity,
@@ -184,7 +180,7 @@ class CornerField:
             # launched after the searches, so that eagerly (not from a graph) the searches' blocks start first
             wp.launch(winding_kernel(), dim=capacity, inputs=[corner_keys, count, capacity, origin, cell, bvh],
                       outputs=[inside], device=self.device, block_dim=SIGN_BLOCK_DIM, stream=beside)
-            self._join(beside)
+            self._beside.join(beside)
         wp.launch(sign_kernel(sign.method), dim=capacity,
                   inputs=[corner_keys, count, capacity, origin, cell, bvh, sign, inside],
                   outputs=[self.value, self.leaf], device=self.device, block_dim=SIGN_BLOCK_DIM)
@@ -201,23 +197,6 @@ class CornerField:
         wp.launch(_leaf_faces, dim=capacity, inputs=[self.leaf, count, capacity, bvh], outputs=[next_face],
                   device=self.device)
         self._next = (next_keys, next_face, capacity, np.asarray(centre, dtype=np.float64).copy(), side)
-
-    def _fork(self) -> wp.Stream | None:
-        """A second stream that has waited for everything queued so far on the current one (CUDA), else
-        None: work launched on it runs beside what is queued next on the current stream, in a captured
-        graph as well (the wait becomes an edge)."""
-        if not (self.device.is_cuda and self.winding_beside):
-            return None
-        if self._beside is None:
-            self._beside = wp.Stream(self.device)
-            self._forked, self._joined = wp.Event(self.device), wp.Event(self.device)
-        self._beside.wait_stream(wp.get_stream(self.device), self._forked)
-        return self._beside
-
-    def _join(self, beside: wp.Stream | None) -> None:
-        """The current stream waits for the work launched on `beside`."""
-        if beside is not None:
-            wp.get_stream(self.device).wait_stream(beside, self._joined)
 
     def keep_frame(self) -> None:
         """Make the last computed frame's faces the next frame's starting bounds. A frame that outgrew its
@@ -514,7 +493,7 @@ def _make_sign_kernel(method: int) -> wp.Kernel:
         nearest: wp.array(dtype=wp.int32),
     ):
         """Sign each corner's distance; where nothing lay within the band, the seed becomes its leaf. With
-        winding numbers the sides come from `winding_corners`, run beside the searches."""
+        winding numbers the sides come from `winding_kernel`, run beside the searches."""
         i = wp.tid()
         if i >= wp.min(count[0], capacity):
             return

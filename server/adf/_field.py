@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 import warp as wp
 
-from badf.server.adf._buffers import DeviceBuffers
+from badf.server.adf._buffers import DeviceBuffers, SideStream
 from badf.server.adf._bvh import Bvh
 from badf.server.adf._clock import StageClock
 from badf.server.adf._distance import OUTPUT_BITS, CornerField, PointQuery
@@ -214,6 +214,7 @@ class DistanceField:
         self._faces.assign(f)
         self._clock = StageClock(self._device)
         self._stream = wp.Stream(self._device) if self._device.is_cuda else None
+        self._beside = SideStream(self._device)  # the BVH's refit runs on it, beside the octree's build
         # the frame's counts, copied to the host at its end (pinned, so the copy can be part of a graph)
         self._report = wp.zeros(64, dtype=wp.int32, device="cpu", pinned=self._device.is_cuda)
         self._report_sizes: list[int] = []
@@ -461,15 +462,19 @@ class DistanceField:
         """Queue one frame's kernels (measuring reads sizes back on the way) and its report."""
         clock = self._clock
         origin, side = self._domain.origin, self._domain.side
-        if domain_moved:
-            with clock.stage("bvh_build"):
-                self._bvh.build(self._vertices, self._faces, origin, side)
-        with clock.stage("refit"):
-            self._bvh.refit(self._vertices, self._faces)
-        with clock.stage("normals"):
-            self._normals.update(self._vertices)
+        # the BVH and the sign data need only the vertices, as does the octree: on CUDA they run beside it
+        beside = self._beside.fork()
+        with wp.ScopedStream(beside, sync_enter=False) if beside is not None else contextlib.nullcontext():
+            if domain_moved:
+                with clock.stage("bvh_build"):
+                    self._bvh.build(self._vertices, self._faces, origin, side)
+            with clock.stage("refit"):
+                self._bvh.refit(self._vertices, self._faces)
+            with clock.stage("normals"):
+                self._normals.update(self._vertices)
         o = self._octree
         o.build(self._vertices, self._faces, self._face_count, origin, side, clock, measure=measure)
+        self._beside.join(beside)
         with clock.stage("distances"):
             self._corners.compute(o.corner_keys, o.corner_set.view.count, o.corner_capacity, o.corner_count,
                                   self._bvh.view(), self._bvh.cut, self._normals.view(), self._domain.centre, side,
