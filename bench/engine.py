@@ -282,6 +282,49 @@ def measure_search_split(vertices, faces, *, depth: int, device: str, repeat: in
     return {"depth": depth, "corners": int(field._octree.corner_count), "settings": rows}
 
 
+def measure_far_corners(vertices, faces, *, depth: int, device: str, repeat: int,
+                        cells=(0, 4, 6, 8, 12, 16)) -> dict:
+    """Coherent updates with corners far from the surface searched by subtree beside the others
+    (CornerField.far_cells K: starting bound of K finest cells or more; 0: off), at one depth: per K, the
+    median device time of the distance stage and of the whole update over `repeat` frames (replayed from
+    a graph), how many corners were listed far, and how the values compare with K = 0's on one common
+    frame (bit mismatches, largest difference over the diagonal, sign flips, nearest-face differences)."""
+    from badf.server.adf import DistanceField
+
+    field = DistanceField(vertices, faces, depth=depth, device=device)
+    corners = field._corners
+    diag = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+    frames = [deform(vertices, 0.5 + 0.02 * k) for k in range(repeat + 3)]
+    check = deform(vertices, 0.9)
+    rows, reference = [], None
+    for far in cells:
+        corners.far_cells = far
+        stage, total = [], []
+        for k, frame in enumerate(frames):
+            field.update(frame)
+            if k >= 3:  # after the eager frame and the capture
+                times = field.stats()["times_ms"]
+                stage.append(times["distances"])
+                total.append(times["total"])
+        field.update(check)
+        _, values, nearest = field.corner_samples()
+        if reference is None:
+            reference = (values, nearest)
+        listed = corners.far_corners()
+        rows.append({
+            "far_cells": far,
+            "distances_ms": round(_median(stage), 4),
+            "update_gpu_ms": round(_median(total), 4),
+            "far_corners": int(listed),
+            "value_mismatches": int(np.sum(values != reference[0])),
+            "max_difference_diag": float(np.max(np.abs(np.abs(values) - np.abs(reference[0])))) / diag,
+            "sign_flips": int(np.sum(np.sign(values) != np.sign(reference[0]))),
+            "face_differences": int(np.sum(nearest != reference[1])),
+        })
+    return {"depth": depth, "corners": int(field._octree.corner_count), "sign": field.info()["sign"],
+            "settings": rows}
+
+
 def measure_kernels(vertices, faces, *, depth: int, device: str, repeat: int) -> dict:
     """Where a default coherent update's device time goes, kernel by kernel (Warp's CUDA activity timing):
     per kernel or copy, its launches and summed device time over `repeat` updates, and the span of each
@@ -464,6 +507,24 @@ def run(args: argparse.Namespace) -> int:
                 json.dump({"benchmark": "engine-kernels", "date": timestamp(), "device": bench_device_name(device),
                            "mesh": {"path": args.mesh, "faces": len(faces)}, **profile}, f, indent=1)
         return 0
+    if args.far_sweep:
+        sweeps = []
+        for depth in args.far_sweep:
+            sweep = measure_far_corners(vertices, faces, depth=depth, device=device, repeat=repeat)
+            sweeps.append(sweep)
+            print_table(f"far corners searched beside, depth {depth}, {sweep['corners']} corners, sign {sweep['sign']}:"
+                        f" medians of {repeat}",
+                        ["far cells", "distances ms", "update gpu ms", "far corners", "bit mismatches",
+                         "max diff / diag", "sign flips", "face diffs"],
+                        [[r["far_cells"], r["distances_ms"], r["update_gpu_ms"], r["far_corners"], r["value_mismatches"],
+                          f"{r['max_difference_diag']:.2g}", r["sign_flips"], r["face_differences"]]
+                         for r in sweep["settings"]])
+        if args.out:
+            with open(args.out, "w") as f:
+                json.dump({"benchmark": "engine-far-corners", "date": timestamp(), "device": bench_device_name(device),
+                           "mesh": {"path": args.mesh, "faces": len(faces)}, "repeat": repeat, "sweeps": sweeps},
+                          f, indent=1)
+        return 0
     if args.split_sweep:
         sweeps = []
         for depth in args.split_sweep:
@@ -542,6 +603,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--depth", type=int, default=7, help="octree depth of the main configuration")
     parser.add_argument("--repeat", type=int, default=20, help="timed repeats per measurement")
     parser.add_argument("--quick", action="store_true", help="only the main configuration")
+    parser.add_argument("--far-sweep", type=int, nargs="+", metavar="DEPTH",
+                        help="only time updates with far corners searched by subtree beside the others, at these "
+                             "depths, against off")
     parser.add_argument("--split-sweep", type=int, nargs="+", metavar="DEPTH",
                         help="only time the corner stage with long searches shared out or not, at these depths")
     parser.add_argument("--kernels", action="store_true",

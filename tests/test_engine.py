@@ -492,6 +492,35 @@ def test_work_beside_the_frame_stream_gives_the_same_field(device, monkeypatch, 
     assert beside.stats()["graph_captures"] >= 1 and beside.stats()["domain_moves"] >= 1
 
 
+@pytest.mark.parametrize("name,band", [("stanford-bunny", None), ("spot", None), ("spot", 0.08)])
+def test_far_corners_searched_by_subtree_give_the_same_field(device, name, band):
+    """Corners whose starting bound is far from the surface may be searched by BVH subtree, beside the
+    others (CornerField.far_cells). The distances equal whole searches' bit for bit, through coherent
+    frames, a frame that moves the domain (most corners then start far) and with a band; a nearest face
+    may differ only where two faces are equally near."""
+    vertices, faces = meshes.load(name)
+    extent = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
+    band = None if band is None else band * extent
+    whole = DistanceField(vertices, faces, depth=6, band=band, device=device)
+    split = DistanceField(vertices, faces, depth=6, band=band, device=device)
+    whole._corners.far_cells = 0
+    split._corners.far_cells = 2
+    frames = [vertices * np.float32(1.0 + 0.01 * k) for k in range(1, 5)]
+    frames.append(frames[-1] + np.float32(2.0 * extent))
+    for frame in frames:
+        whole.update(frame)
+        split.update(frame)
+        assert split._corners.far_corners() > 0
+        positions, expected, expected_face = whole.corner_samples()
+        _, got, face = split.corner_samples()
+        np.testing.assert_array_equal(got, expected)
+        differ = face != expected_face
+        assert differ.mean() < 0.01
+        tie = np.abs(distance_to_own_face(positions[differ], frame, faces, face[differ])
+                     - distance_to_own_face(positions[differ], frame, faces, expected_face[differ]))
+        assert np.all(tie <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frame))
+
+
 def test_a_failed_graph_capture_falls_back_to_kernel_by_kernel(device, monkeypatch, caplog):
     """Where CUDA graphs cannot be captured, planned frames run kernel by kernel and answer the same."""
     if not device.startswith("cuda"):

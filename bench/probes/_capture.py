@@ -7,9 +7,13 @@ import warp as wp
 from badf.server.adf import DistanceField
 from badf.server.adf import _distance
 
+# corner_searches' inputs up to its budget; after it come the budget, `seeded` and the seeds
+SEEDING_INPUTS = 16
+
 
 def captured_search(path: str, device: str):
-    """(field, the corner search's inputs without its budget, corner count, the engine's distances)."""
+    """(field, the corner search's inputs before its budget (what seeds a search), corner count, the
+    engine's distances)."""
     wp.config.log_level = wp.LOG_ERROR
     wp.init()
     data = np.load(path)
@@ -30,6 +34,6 @@ def captured_search(path: str, device: str):
         field.update(vertices * np.float32(1.002))
     finally:
         wp.launch = launch
-    inputs = captured["inputs"][:-1]
+    inputs = captured["inputs"][:SEEDING_INPUTS]
     count = int(inputs[1].numpy()[0])
     return field, inputs, count, np.abs(field._corners.value.numpy()[:count])

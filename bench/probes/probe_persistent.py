@@ -65,6 +65,7 @@ z = lambda dt: wp.zeros(cap, dtype=dt, device=DEV)
 dist, near, lc, lb, lbest = z(float), z(int), z(int), z(float), z(wp.int64)
 lcount = wp.zeros(1, dtype=int, device=DEV)
 counter = wp.zeros(1, dtype=int, device=DEV)
+unseeded = wp.zeros(1, dtype=int, device=DEV)
 sms = wp.get_device(DEV).sm_count if DEV != "cpu" else 1
 UNL = 2**31 - 1
 cases = [("one per corner", D.corner_searches, cap, UNL, 6, False),
@@ -85,8 +86,9 @@ for name, kernel, threads, budget, levels, pairs in cases:
         if DEV != "cpu":
             e0, e1, e2 = (wp.Event(enable_timing=True) for _ in range(3))
             wp.record_event(e0)
-        shared = [counter] if kernel is persistent else []  # the engine's kernel: one thread per corner
-        wp.launch(kernel, dim=threads, inputs=inputs + [budget] + shared, outputs=[dist, near, lcount, lc, lb, lbest],
+        # the engine's kernel (one thread per corner) seeds each search itself: seeded 0
+        extra = [counter] if kernel is persistent else [0, unseeded]
+        wp.launch(kernel, dim=threads, inputs=inputs + [budget] + extra, outputs=[dist, near, lcount, lc, lb, lbest],
                   device=DEV, block_dim=128)
         c1 = time.perf_counter()
         if DEV != "cpu":
@@ -95,9 +97,9 @@ for name, kernel, threads, budget, levels, pairs in cases:
             wp.launch(split_pairs, dim=sms * 2048, inputs=[keys, origin, cell, bvh, cut, levels, counter2, lcount, lc, lb],
                       outputs=[lbest], device=DEV, block_dim=128)
         else:
-            wp.launch(D._split_searches, dim=groups << levels, inputs=[keys, origin, cell, bvh, cut, levels, groups, lcount, lc, lb],
+            wp.launch(D._split_searches, dim=groups << levels, inputs=[keys, origin, cell, bvh, cut, levels, groups, lcount, cap, lc, lb],
                       outputs=[lbest], device=DEV)
-        wp.launch(D._gather_split, dim=groups, inputs=[groups, lcount, lc, lbest], outputs=[dist, near], device=DEV)
+        wp.launch(D._gather_split, dim=groups, inputs=[groups, lcount, cap, lc, lbest], outputs=[dist, near], device=DEV)
         if DEV != "cpu":
             wp.record_event(e2)
         wp.synchronize()

@@ -67,9 +67,9 @@ for K, budget, levels in [(None, 2**31 - 1, 6), (None, 128, 6), (8, 2**31 - 1, 6
                   device=DEV, block_dim=128)
         c1 = time.perf_counter()
         if not cpu: wp.record_event(e1)
-        wp.launch(D._split_searches, dim=groups << levels, inputs=[keys, origin, cell, bvh, cut, levels, groups, lcount, lc, lb],
+        wp.launch(D._split_searches, dim=groups << levels, inputs=[keys, origin, cell, bvh, cut, levels, groups, lcount, cap, lc, lb],
                   outputs=[lbest], device=DEV)
-        wp.launch(D._gather_split, dim=groups, inputs=[groups, lcount, lc, lbest], outputs=[dist, near], device=DEV)
+        wp.launch(D._gather_split, dim=groups, inputs=[groups, lcount, cap, lc, lbest], outputs=[dist, near], device=DEV)
         c2 = time.perf_counter()
         if not cpu: wp.record_event(e2)
         wp.synchronize()

@@ -93,6 +93,11 @@ class SearchSplit:
         return _WHOLE
 
 
+# (levels, groups) of the far corners' subtree searches, and the far list's size: 1 / FAR_LIST_FRACTION of
+# the corners at most (more are searched whole).
+_FAR_SPLIT = (6, 4096)
+FAR_LIST_FRACTION = 8
+
 # (budget, levels, groups) where splitting pays, and the corner count per SM below which it does.
 _SPLIT = (128, 6, 4096)
 _SPLIT_THREADS_PER_SM = 1024
@@ -106,6 +111,10 @@ class CornerField:
     domain moving (a corner is matched to the nearest of last frame's lattice points) and the BVH being
     rebuilt (faces, not leaves, are kept).
     """
+
+    # On CUDA, corners whose starting bound is this many finest cells or more are searched by BVH subtree
+    # beside the other corners (list_far_corners); 0 turns that off. See `badf bench engine --far-sweep`.
+    far_cells = 0
 
     def __init__(self, buffers: DeviceBuffers):
         self.buffers = buffers
@@ -156,14 +165,36 @@ class CornerField:
             long_count.zero_()
         by_winding = sign.method == SIGN_WINDING
         inside = b.ensure("corner.inside", capacity if by_winding else 1, wp.uint8)
-        beside = self._beside.fork() if by_winding else None
+        seeding = [corner_keys, count, capacity, origin, cell, 1.0 / side, depth, bvh, band or 0.0,
+                   1 if use_previous else 0, self._previous_keys, self._previous_face, self._previous_count,
+                   self._previous_capacity, previous_origin, 1.0 / previous_cell]
+        far_cells = self.far_cells if bvh.internal_count > 0 else 0
+        seeds = b.ensure("corner.seeds", capacity if far_cells > 0 else 1, wp.int32)
+        if far_cells > 0:
+            # corners far from the surface, listed with their seeds' bounds and searched by subtree beside the
+            # others, from the start of the stage (their single walks would be the launch's longest)
+            far_capacity = max(1, capacity // FAR_LIST_FRACTION)
+            far_count = b.ensure("corner.far_count", 1, wp.int32)
+            far_corner = b.ensure("corner.far_corner", far_capacity, wp.int32)
+            far_bound = b.ensure("corner.far_bound", far_capacity, wp.float32)
+            far_best = b.ensure("corner.far_best", far_capacity, wp.int64)
+            far_count.zero_()
+            wp.launch(list_far_corners, dim=capacity, inputs=[*seeding, (far_cells * cell) ** 2, far_capacity],
+                      outputs=[seeds, self.value, self.leaf, far_count, far_corner, far_bound, far_best],
+                      device=self.device, block_dim=SEARCH_BLOCK_DIM)
+        beside = self._beside.fork() if by_winding or far_cells > 0 else None
+        if far_cells > 0:
+            levels, groups = _FAR_SPLIT
+            wp.launch(_split_searches, dim=groups << levels,
+                      inputs=[corner_keys, origin, cell, bvh, cuts(levels), levels, groups, far_count, far_capacity,
+                              far_corner, far_bound],
+                      outputs=[far_best], device=self.device, stream=beside)
+            wp.launch(_gather_split, dim=groups, inputs=[groups, far_count, far_capacity, far_corner, far_best],
+                      outputs=[self.value, self.leaf], device=self.device, stream=beside)
         wp.launch(
             corner_searches,
             dim=capacity,
-            inputs=[corner_keys, count, capacity, origin, cell, 1.0 / side, depth, bvh, band or 0.0,
-                    1 if use_previous else 0, self._previous_keys, self._previous_face, self._previous_count,
-                    self._previous_capacity, previous_origin, 1.0 / previous_cell,
-                    split.budget if splitting else UNLIMITED_VISITS],
+            inputs=[*seeding, split.budget if splitting else UNLIMITED_VISITS, 1 if far_cells > 0 else 0, seeds],
             outputs=[self.value, self.leaf, long_count, long_corner, long_bound, long_best],
             device=self.device,
             block_dim=SEARCH_BLOCK_DIM,
@@ -172,15 +203,16 @@ class CornerField:
             ways = 1 << split.levels
             wp.launch(_split_searches, dim=split.groups * ways,
                       inputs=[corner_keys, origin, cell, bvh, cuts(split.levels), split.levels, split.groups, long_count,
-                              long_corner, long_bound],
+                              capacity, long_corner, long_bound],
                       outputs=[long_best], device=self.device)
-            wp.launch(_gather_split, dim=split.groups, inputs=[split.groups, long_count, long_corner, long_best],
+            wp.launch(_gather_split, dim=split.groups,
+                      inputs=[split.groups, long_count, capacity, long_corner, long_best],
                       outputs=[self.value, self.leaf], device=self.device)
         if by_winding:
             # launched after the searches, so that eagerly (not from a graph) the searches' blocks start first
             wp.launch(winding_kernel(), dim=capacity, inputs=[corner_keys, count, capacity, origin, cell, bvh],
                       outputs=[inside], device=self.device, block_dim=SIGN_BLOCK_DIM, stream=beside)
-            self._beside.join(beside)
+        self._beside.join(beside)
         wp.launch(sign_kernel(sign.method), dim=capacity,
                   inputs=[corner_keys, count, capacity, origin, cell, bvh, sign, inside],
                   outputs=[self.value, self.leaf], device=self.device, block_dim=SIGN_BLOCK_DIM)
@@ -218,6 +250,13 @@ class CornerField:
         split = self.split or SearchSplit.automatic(self.device, expected_count)
         return split if internal_count > 0 else _WHOLE
 
+    def cut_levels(self, split: SearchSplit) -> list[int]:
+        """Depths of the BVH cuts that `compute` will use with this split."""
+        levels = [split.levels] if split.budget > 0 else []
+        if self.far_cells > 0:
+            levels.append(_FAR_SPLIT[0])
+        return levels
+
     def coherence_key(self) -> tuple:
         """What `compute` takes by value from last frame (for reusing a captured frame)."""
         centre = None if self._previous_centre is None else tuple(self._previous_centre)
@@ -227,6 +266,12 @@ class CornerField:
     def search_budget(self) -> int:
         """The last compute's visit budget per corner search, 0 where every search ran whole."""
         return self._last_split.budget
+
+    def far_corners(self) -> int:
+        """How many corners the last compute listed as far (a device read, for tools); 0 with far_cells 0."""
+        if self.far_cells <= 0:
+            return 0
+        return int(self.buffers.ensure("corner.far_count", 1, wp.int32).numpy()[0])
 
     def long_searches(self) -> int:
         """How many corners of the last compute ran past the search budget (a device read, for tools)."""
@@ -392,6 +437,8 @@ def corner_searches(
     previous_origin: wp.vec3,
     previous_inv_cell: float,
     budget: int,
+    seeded: int,
+    seeds: wp.array(dtype=wp.int32),
     distance: wp.array(dtype=wp.float32),
     nearest: wp.array(dtype=wp.int32),
     long_count: wp.array(dtype=wp.int32),
@@ -401,6 +448,8 @@ def corner_searches(
 ):
     """Unsigned distance and nearest leaf of each corner; -1 - seed where nothing lies within the band.
     A search that needs more than `budget` node visits is listed as long, with the bound it reached.
+    With `seeded`, each corner's seed leaf comes from `seeds` (list_far_corners), and a corner whose seed
+    is negative was listed as far and is searched elsewhere.
 
     The sign is a separate kernel (sign_kernel), so this one carries neither the winding number's stack
     nor its registers. A combined kernel proved fragile: with an experiment's extra code in the search it
@@ -412,7 +461,11 @@ def corner_searches(
         return
     p = _lattice_point(corner_keys[i], origin, cell)
     seed = int(-1)
-    if coherent != 0:
+    if seeded != 0:
+        seed = seeds[i]
+        if seed < 0:
+            return
+    elif coherent != 0:
         seed = coherent_seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity,
                              previous_origin, previous_inv_cell)
     else:
@@ -429,6 +482,70 @@ def corner_searches(
 
 
 @wp.kernel(enable_backward=False)
+def list_far_corners(
+    corner_keys: wp.array(dtype=wp.int64),
+    count: wp.array(dtype=wp.int32),
+    capacity: int,
+    origin: wp.vec3,
+    cell: float,
+    inv_side: float,
+    depth: int,
+    bvh: BvhView,
+    band: float,
+    coherent: int,
+    previous_keys: wp.array(dtype=wp.int64),
+    previous_face: wp.array(dtype=wp.int32),
+    previous_count: wp.array(dtype=wp.int32),
+    previous_capacity: int,
+    previous_origin: wp.vec3,
+    previous_inv_cell: float,
+    far_sq: float,
+    far_capacity: int,
+    seeds: wp.array(dtype=wp.int32),
+    distance: wp.array(dtype=wp.float32),
+    nearest: wp.array(dtype=wp.int32),
+    far_count: wp.array(dtype=wp.int32),
+    far_corner: wp.array(dtype=wp.int32),
+    far_bound: wp.array(dtype=wp.float32),
+    far_best: wp.array(dtype=wp.int64),
+):
+    """Each corner's seed leaf; a corner whose starting bound (its seed's distance, or the band) is at least
+    sqrt(far_sq) is listed for _split_searches with that bound, its seed's answer written as a start, and
+    its seed marked -1 so corner_searches leaves it. Such corners are few and their walks the longest."""
+    i = wp.tid()
+    if i >= wp.min(count[0], capacity):
+        return
+    p = _lattice_point(corner_keys[i], origin, cell)
+    seed = int(-1)
+    if coherent != 0:
+        seed = coherent_seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity,
+                             previous_origin, previous_inv_cell)
+    else:
+        seed = spatial_seed(bvh, p, origin, inv_side)
+    seeds[i] = seed
+    best_sq = leaf_distance_sq(bvh, seed, p)
+    best = seed
+    if band > 0.0 and band * band < best_sq:
+        best = -1
+        best_sq = band * band
+    if best_sq < far_sq:
+        return
+    item = wp.atomic_add(far_count, 0, 1)
+    if item >= far_capacity:
+        return  # the list is full: searched whole by corner_searches
+    seeds[i] = -1
+    far_corner[item] = i
+    far_bound[item] = best_sq
+    far_best[item] = pack_distance_leaf(best_sq, best)
+    if best >= 0:
+        distance[i] = wp.sqrt(best_sq)
+        nearest[i] = best
+    else:
+        distance[i] = band
+        nearest[i] = -1 - seed
+
+
+@wp.kernel(enable_backward=False)
 def _split_searches(
     corner_keys: wp.array(dtype=wp.int64),
     origin: wp.vec3,
@@ -438,19 +555,20 @@ def _split_searches(
     levels: int,
     groups: int,
     long_count: wp.array(dtype=wp.int32),
+    listed: int,
     long_corner: wp.array(dtype=wp.int32),
     long_bound: wp.array(dtype=wp.float32),
     long_best: wp.array(dtype=wp.int64),
 ):
-    """Thread (g, k) searches subtree k of the cut for the long corners g, g + groups, ... from each one's
-    bound, and keeps the least (distance, leaf) per corner. Every thread starts from the same bound, so the
-    result does not depend on the order the threads run in."""
+    """Thread (g, k) searches subtree k of the cut for the long corners g, g + groups, ... (of the first
+    `listed` at most) from each one's bound, and keeps the least (distance, leaf) per corner. Every thread
+    starts from the same bound, so the result does not depend on the order the threads run in."""
     t = wp.tid()
     group = t >> levels
     slot = cut[t - (group << levels)]
     if slot < 0:
         return
-    for item in range(group, long_count[0], groups):
+    for item in range(group, wp.min(long_count[0], listed), groups):
         p = _lattice_point(corner_keys[long_corner[item]], origin, cell)
         best_sq = long_bound[item]
         leaf, leaf_sq = nearest_in_slot(bvh, p, slot, -1, best_sq)
@@ -462,13 +580,14 @@ def _split_searches(
 def _gather_split(
     groups: int,
     long_count: wp.array(dtype=wp.int32),
+    listed: int,
     long_corner: wp.array(dtype=wp.int32),
     long_best: wp.array(dtype=wp.int64),
     distance: wp.array(dtype=wp.float32),
     nearest: wp.array(dtype=wp.int32),
 ):
     """Write the split searches' results back to their corners (those that found a leaf within the band)."""
-    for item in range(wp.tid(), long_count[0], groups):
+    for item in range(wp.tid(), wp.min(long_count[0], listed), groups):
         leaf = packed_leaf(long_best[item])
         if leaf >= 0:
             corner = long_corner[item]

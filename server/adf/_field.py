@@ -504,8 +504,8 @@ class DistanceField:
             self._graph = None
             self._pipeline(measure=False)
             return
-        if split.budget > 0:
-            self._bvh.cut(split.levels)  # computed before the capture, kept until the next BVH build
+        for levels in self._corners.cut_levels(split):
+            self._bvh.cut(levels)  # computed before the capture, kept until the next BVH build
         stages_before = list(self._clock.recorded)
         try:
             wp.capture_begin(self._device, stream=self._stream, force_module_load=False)
@@ -529,6 +529,7 @@ class DistanceField:
         return (
             o.surface_set.planned, o.halo_set.planned, o.node_capacity, o.internal_capacity, o.corner_set.planned,
             tuple(self._domain.centre), self._domain.side, c.coherence_key(), (split.budget, split.levels, split.groups),
+            c.far_cells,
         )
 
     def _queue_report(self) -> list[int]:
