@@ -97,6 +97,7 @@ class SearchSplit:
 # the corners at most (more are searched whole).
 _FAR_SPLIT = (6, 4096)
 FAR_LIST_FRACTION = 8
+FAR_CELLS = 12
 
 # (budget, levels, groups) where splitting pays, and the corner count per SM below which it does.
 _SPLIT = (128, 6, 4096)
@@ -112,9 +113,9 @@ class CornerField:
     rebuilt (faces, not leaves, are kept).
     """
 
-    # On CUDA, corners whose starting bound is this many finest cells or more are searched by BVH subtree
-    # beside the other corners (list_far_corners); 0 turns that off. See `badf bench engine --far-sweep`.
-    far_cells = 0
+    # Corners whose starting bound is this many finest cells or more are searched by BVH subtree beside the
+    # other corners (list_far_corners); 0 turns that off, None chooses (far_cells_for).
+    far_cells: int | None = None
 
     def __init__(self, buffers: DeviceBuffers):
         self.buffers = buffers
@@ -132,6 +133,7 @@ class CornerField:
         self._previous_side = 0.0
         self.split: SearchSplit | None = None  # None: SearchSplit.automatic for each compute
         self._last_split = _WHOLE
+        self._last_far_cells = 0
         self._beside = SideStream(self.device)  # winding numbers run on it, beside the searches
 
     def compute(self, corner_keys: wp.array, count: wp.array, capacity: int, expected_count: int, bvh: BvhView, cuts,
@@ -168,7 +170,8 @@ class CornerField:
         seeding = [corner_keys, count, capacity, origin, cell, 1.0 / side, depth, bvh, band or 0.0,
                    1 if use_previous else 0, self._previous_keys, self._previous_face, self._previous_count,
                    self._previous_capacity, previous_origin, 1.0 / previous_cell]
-        far_cells = self.far_cells if bvh.internal_count > 0 else 0
+        far_cells = self.far_cells_for(sign.method) if bvh.internal_count > 0 else 0
+        self._last_far_cells = far_cells
         seeds = b.ensure("corner.seeds", capacity if far_cells > 0 else 1, wp.int32)
         if far_cells > 0:
             # corners far from the surface, listed with their seeds' bounds and searched by subtree beside the
@@ -250,10 +253,27 @@ class CornerField:
         split = self.split or SearchSplit.automatic(self.device, expected_count)
         return split if internal_count > 0 else _WHOLE
 
-    def cut_levels(self, split: SearchSplit) -> list[int]:
-        """Depths of the BVH cuts that `compute` will use with this split."""
+    def far_cells_for(self, sign_method: int) -> int:
+        """The far-corner threshold `compute` uses with this sign method: far_cells where it is set, else
+        FAR_CELLS on CUDA when no winding numbers run beside the searches, else 0.
+
+        The searches leave most SMs idle while their longest walks (corners far from the surface) finish.
+        Where winding numbers run beside them, those fill the SMs, and searching far corners by subtree
+        gained nothing on the bunny (H100, 2026-11-22: depth 7, 1.98 against 1.95 to 1.99 ms for 8 to 16
+        cells; depth 8, 4.44 against 4.48 to 4.61). Without, on the armadillo (pseudonormals) the distance
+        stage went from 1.40 to 1.27 ms at depth 7 and from 2.46 to 1.95 ms at depth 8 (12 cells); at
+        depth 6 (35K corners) from 1.26 to 1.33, which is within that run's spread. On the CPU back-end
+        threads run one after another, so splitting only adds work."""
+        if self.far_cells is not None:
+            return self.far_cells
+        if self._beside.enabled and sign_method != SIGN_WINDING:
+            return FAR_CELLS
+        return 0
+
+    def cut_levels(self, split: SearchSplit, sign_method: int) -> list[int]:
+        """Depths of the BVH cuts that `compute` will use with this split and sign method."""
         levels = [split.levels] if split.budget > 0 else []
-        if self.far_cells > 0:
+        if self.far_cells_for(sign_method) > 0:
             levels.append(_FAR_SPLIT[0])
         return levels
 
@@ -268,8 +288,9 @@ class CornerField:
         return self._last_split.budget
 
     def far_corners(self) -> int:
-        """How many corners the last compute listed as far (a device read, for tools); 0 with far_cells 0."""
-        if self.far_cells <= 0:
+        """How many corners the last compute listed as far, or found far past the list's size (a device
+        read, for tools)."""
+        if self._last_far_cells <= 0:
             return 0
         return int(self.buffers.ensure("corner.far_count", 1, wp.int32).numpy()[0])
 

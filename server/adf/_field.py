@@ -504,7 +504,7 @@ class DistanceField:
             self._graph = None
             self._pipeline(measure=False)
             return
-        for levels in self._corners.cut_levels(split):
+        for levels in self._corners.cut_levels(split, self._normals.code):
             self._bvh.cut(levels)  # computed before the capture, kept until the next BVH build
         stages_before = list(self._clock.recorded)
         try:
@@ -529,7 +529,7 @@ class DistanceField:
         return (
             o.surface_set.planned, o.halo_set.planned, o.node_capacity, o.internal_capacity, o.corner_set.planned,
             tuple(self._domain.centre), self._domain.side, c.coherence_key(), (split.budget, split.levels, split.groups),
-            c.far_cells,
+            c.far_cells_for(self._normals.code),
         )
 
     def _queue_report(self) -> list[int]:

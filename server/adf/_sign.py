@@ -231,9 +231,14 @@ class Pseudonormals:
         """Record what the last frame used, from its report."""
         self.frame_method = "winding" if self.method == "pseudonormal" and winding_frame else self.method
 
+    @property
+    def code(self) -> int:
+        """The method as the kernels take it (SIGN_NONE, SIGN_PSEUDONORMAL or SIGN_WINDING)."""
+        return _SIGN_CODES[self.method]
+
     def view(self) -> SignView:
         v = SignView()
-        v.method = _SIGN_CODES[self.method]
+        v.method = self.code
         v.winding_frame = self.winding_frame
         v.faces = self.welded_faces
         v.face_edge = self.face_edge
