@@ -217,7 +217,7 @@ class CornerField:
                       outputs=[inside], device=self.device, block_dim=SIGN_BLOCK_DIM, stream=beside)
         self._beside.join(beside)
         wp.launch(sign_kernel(sign.method), dim=capacity,
-                  inputs=[corner_keys, count, capacity, origin, cell, bvh, band or 0.0, sign, inside],
+                  inputs=[corner_keys, count, capacity, origin, cell, bvh, sign, inside],
                   outputs=[self.value, self.leaf], device=self.device, block_dim=SIGN_BLOCK_DIM)
         self.coherent = use_previous
         if not coherent:
@@ -627,31 +627,21 @@ def _make_sign_kernel(method: int) -> wp.Kernel:
         origin: wp.vec3,
         cell: float,
         bvh: BvhView,
-        band: float,
         sign: SignView,
         inside_by_winding_number: wp.array(dtype=wp.uint8),
         value: wp.array(dtype=wp.float32),
         nearest: wp.array(dtype=wp.int32),
     ):
-        """Each corner's distance, from its nearest leaf, signed; where nothing lay within the band, the seed
-        becomes its leaf. With winding numbers the sides come from `winding_kernel`, run beside the searches.
-
-        The distance is computed here, in one kernel for every corner, so its rounding does not depend on
-        which kernel found the leaf (a whole search, or a split one: CUDA may compile the same arithmetic
-        differently into two kernels)."""
+        """Sign each corner's distance; where nothing lay within the band, the seed becomes its leaf. With
+        winding numbers the sides come from `winding_kernel`, run beside the searches."""
         i = wp.tid()
         if i >= wp.min(count[0], capacity):
             return
         leaf = nearest[i]
-        p = _lattice_point(corner_keys[i], origin, cell)
         if leaf < 0:
             nearest[i] = -1 - leaf
-        else:
-            d = wp.sqrt(leaf_distance_sq(bvh, leaf, p))
-            if band > 0.0:
-                d = wp.min(d, band)
-            value[i] = d
         if wp.static(pseudonormal or winding):
+            p = _lattice_point(corner_keys[i], origin, cell)
             inside = False
             if wp.static(pseudonormal):
                 if leaf >= 0:
