@@ -499,10 +499,10 @@ def test_work_beside_the_frame_stream_gives_the_same_field(device, monkeypatch, 
 @pytest.mark.parametrize("name,band", [("stanford-bunny", None), ("spot", None), ("spot", 0.08)])
 def test_far_corners_searched_by_subtree_give_the_same_field(device, name, band):
     """Corners whose starting bound is far from the surface may be searched by BVH subtree, beside the
-    others (CornerField.far_cells). The distances equal whole searches' (bit for bit on the CPU; on CUDA
-    within the exact tolerance, with no sign changed), through coherent frames, a frame that moves the
-    domain (most corners then start far) and with a band; a nearest face may differ only where two faces
-    are equally near."""
+    others (CornerField.far_cells, off by default). The distances equal whole searches' (bit for bit on
+    the CPU; on CUDA within the exact tolerance, with no sign changed), through coherent frames, a frame
+    that moves the domain (most corners then start far, and the list is dropped) and with a band; a
+    nearest face may differ only where two faces are equally near."""
     vertices, faces = meshes.load(name)
     extent = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
     band = None if band is None else band * extent
@@ -515,15 +515,16 @@ def test_far_corners_searched_by_subtree_give_the_same_field(device, name, band)
     for frame in frames:
         whole.update(frame)
         split.update(frame)
-        assert split._corners.far_corners() > 0
+        assert split._corners.far_corners() != 0  # some listed (or, after the domain move, too many: -1)
         positions, expected, expected_face = whole.corner_samples()
         _, got, face = split.corner_samples()
         if device == "cpu":
             np.testing.assert_array_equal(got, expected)
-        else:  # the two kernels may round a triangle's arithmetic differently
+        else:  # CUDA may compile a triangle's arithmetic differently into the two search kernels
             assert np.all(np.abs(got - expected) <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frame))
             assert np.array_equal(np.sign(got), np.sign(expected))
-        differ = face != expected_face
+        # beyond the band a corner's face is only where its search started
+        differ = (face != expected_face) & (np.abs(expected) < (np.inf if band is None else band))
         assert differ.mean() < 0.01
         tie = np.abs(distance_to_own_face(positions[differ], frame, faces, face[differ])
                      - distance_to_own_face(positions[differ], frame, faces, expected_face[differ]))

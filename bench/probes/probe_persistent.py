@@ -87,7 +87,7 @@ for name, kernel, threads, budget, levels, pairs in cases:
             e0, e1, e2 = (wp.Event(enable_timing=True) for _ in range(3))
             wp.record_event(e0)
         # the engine's kernel (one thread per corner) seeds each search itself: seeded 0
-        extra = [counter] if kernel is persistent else [0, unseeded]
+        extra = [counter] if kernel is persistent else [0, unseeded, unseeded]
         wp.launch(kernel, dim=threads, inputs=inputs + [budget] + extra, outputs=[dist, near, lcount, lc, lb, lbest],
                   device=DEV, block_dim=128)
         c1 = time.perf_counter()

@@ -97,7 +97,7 @@ class SearchSplit:
 # the corners at most (more are searched whole).
 _FAR_SPLIT = (6, 4096)
 FAR_LIST_FRACTION = 8
-FAR_CELLS = 12
+_FAR_LIST_FRACTION = wp.constant(FAR_LIST_FRACTION)
 
 # (budget, levels, groups) where splitting pays, and the corner count per SM below which it does.
 _SPLIT = (128, 6, 4096)
@@ -114,7 +114,7 @@ class CornerField:
     """
 
     # Corners whose starting bound is this many finest cells or more are searched by BVH subtree beside the
-    # other corners (list_far_corners); 0 turns that off, None chooses (far_cells_for).
+    # other corners (list_far_corners); None or 0: off (see far_cells_for).
     far_cells: int | None = None
 
     def __init__(self, buffers: DeviceBuffers):
@@ -185,6 +185,7 @@ class CornerField:
             wp.launch(list_far_corners, dim=capacity, inputs=[*seeding, (far_cells * cell) ** 2, far_capacity],
                       outputs=[seeds, self.value, self.leaf, far_count, far_corner, far_bound, far_best],
                       device=self.device, block_dim=SEARCH_BLOCK_DIM)
+            wp.launch(_settle_far_list, dim=1, inputs=[count], outputs=[far_count], device=self.device)
         beside = self._beside.fork() if by_winding or far_cells > 0 else None
         if far_cells > 0:
             levels, groups = _FAR_SPLIT
@@ -197,7 +198,8 @@ class CornerField:
         wp.launch(
             corner_searches,
             dim=capacity,
-            inputs=[*seeding, split.budget if splitting else UNLIMITED_VISITS, 1 if far_cells > 0 else 0, seeds],
+            inputs=[*seeding, split.budget if splitting else UNLIMITED_VISITS, 1 if far_cells > 0 else 0, seeds,
+                    far_count if far_cells > 0 else long_count],
             outputs=[self.value, self.leaf, long_count, long_corner, long_bound, long_best],
             device=self.device,
             block_dim=SEARCH_BLOCK_DIM,
@@ -254,20 +256,19 @@ class CornerField:
         return split if internal_count > 0 else _WHOLE
 
     def far_cells_for(self, sign_method: int) -> int:
-        """The far-corner threshold `compute` uses with this sign method: far_cells where it is set, else
-        FAR_CELLS on CUDA when no winding numbers run beside the searches, else 0.
+        """The far-corner threshold `compute` uses with this sign method: far_cells where it is set, else 0.
 
-        The searches leave most SMs idle while their longest walks (corners far from the surface) finish.
-        Where winding numbers run beside them, those fill the SMs, and searching far corners by subtree
-        gained nothing on the bunny (H100, 2026-11-22: depth 7, 1.98 against 1.95 to 1.99 ms for 8 to 16
-        cells; depth 8, 4.44 against 4.48 to 4.61). Without, on the armadillo (pseudonormals) the distance
-        stage went from 1.40 to 1.27 ms at depth 7 and from 2.46 to 1.95 ms at depth 8 (12 cells); at
-        depth 6 (35K corners) from 1.26 to 1.33, which is within that run's spread. On the CPU back-end
-        threads run one after another, so splitting only adds work."""
+        Off by default. On an H100 (2026-11-22) it shortened the distance stage where no winding numbers
+        run beside the searches: the armadillo (pseudonormals) from 1.43 to 1.31 ms at depth 7 and from
+        2.46 to 1.95 ms at depth 8 (12 cells). Where winding numbers run beside, they already fill the SMs
+        the long walks leave idle, and the bunny gained nothing (depth 7: 2.00 against 1.96 ms). But on CUDA
+        the subtree kernel rounds a triangle's distance differently from the whole search (within 3e-8 of
+        the diagonal, no sign changed), and which corners are far depends on where their searches start,
+        so coherent and non-coherent frames would no longer agree bit for bit. Computing every final
+        distance in one kernel moved the differences to ties between equally near faces (1 ulp) instead
+        of removing them. `badf bench engine --far-sweep` measures it."""
         if self.far_cells is not None:
             return self.far_cells
-        if self._beside.enabled and sign_method != SIGN_WINDING:
-            return FAR_CELLS
         return 0
 
     def cut_levels(self, split: SearchSplit, sign_method: int) -> list[int]:
@@ -288,7 +289,7 @@ class CornerField:
         return self._last_split.budget
 
     def far_corners(self) -> int:
-        """How many corners the last compute listed as far, or found far past the list's size (a device
+        """How many corners the last compute found far (-1: too many, so all were searched whole; a device
         read, for tools)."""
         if self._last_far_cells <= 0:
             return 0
@@ -460,6 +461,7 @@ def corner_searches(
     budget: int,
     seeded: int,
     seeds: wp.array(dtype=wp.int32),
+    seeded_far_count: wp.array(dtype=wp.int32),
     distance: wp.array(dtype=wp.float32),
     nearest: wp.array(dtype=wp.int32),
     long_count: wp.array(dtype=wp.int32),
@@ -470,7 +472,7 @@ def corner_searches(
     """Unsigned distance and nearest leaf of each corner; -1 - seed where nothing lies within the band.
     A search that needs more than `budget` node visits is listed as long, with the bound it reached.
     With `seeded`, each corner's seed leaf comes from `seeds` (list_far_corners), and a corner whose seed
-    is negative was listed as far and is searched elsewhere.
+    is negative was found far and is searched by subtree, unless the far list was dropped.
 
     The sign is a separate kernel (sign_kernel), so this one carries neither the winding number's stack
     nor its registers. A combined kernel proved fragile: with an experiment's extra code in the search it
@@ -485,7 +487,9 @@ def corner_searches(
     if seeded != 0:
         seed = seeds[i]
         if seed < 0:
-            return
+            if seeded_far_count[0] >= 0:
+                return  # a far corner, searched by subtree
+            seed = -2 - seed
     elif coherent != 0:
         seed = coherent_seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity,
                              previous_origin, previous_inv_cell)
@@ -532,7 +536,8 @@ def list_far_corners(
 ):
     """Each corner's seed leaf; a corner whose starting bound (its seed's distance, or the band) is at least
     sqrt(far_sq) is listed for _split_searches with that bound, its seed's answer written as a start, and
-    its seed marked -1 so corner_searches leaves it. Such corners are few and their walks the longest."""
+    its seed stored as -2 - seed so corner_searches leaves it. Such corners are few and their walks the
+    longest."""
     i = wp.tid()
     if i >= wp.min(count[0], capacity):
         return
@@ -551,10 +556,10 @@ def list_far_corners(
         best_sq = band * band
     if best_sq < far_sq:
         return
+    seeds[i] = -2 - seed  # far: corner_searches leaves it unless _settle_far_list drops the list
     item = wp.atomic_add(far_count, 0, 1)
     if item >= far_capacity:
-        return  # the list is full: searched whole by corner_searches
-    seeds[i] = -1
+        return
     far_corner[item] = i
     far_bound[item] = best_sq
     far_best[item] = pack_distance_leaf(best_sq, best)
@@ -564,6 +569,15 @@ def list_far_corners(
     else:
         distance[i] = band
         nearest[i] = -1 - seed
+
+
+@wp.kernel(enable_backward=False)
+def _settle_far_list(count: wp.array(dtype=wp.int32), far_count: wp.array(dtype=wp.int32)):
+    """More far corners than 1 / FAR_LIST_FRACTION of the corners (after a domain move, most seeds are
+    poor): the list is dropped (count -1) and corner_searches searches them all whole. Which corners take
+    which path then depends on the frame alone, not on the order the listing threads ran in."""
+    if far_count[0] > count[0] // _FAR_LIST_FRACTION:
+        far_count[0] = -1
 
 
 @wp.kernel(enable_backward=False)
@@ -589,7 +603,7 @@ def _split_searches(
     slot = cut[t - (group << levels)]
     if slot < 0:
         return
-    for item in range(group, wp.min(long_count[0], listed), groups):
+    for item in range(group, wp.min(long_count[0], listed), groups):  # a dropped list counts -1
         p = _lattice_point(corner_keys[long_corner[item]], origin, cell)
         best_sq = long_bound[item]
         leaf, leaf_sq = nearest_in_slot(bvh, p, slot, -1, best_sq)
