@@ -200,7 +200,12 @@ def test_adf_error_near_the_surface_is_below_one_finest_cell(device, name):
     assert np.all(np.isfinite(result.normal))
 
 
-def test_coherence_gives_identical_results_over_an_animation(device):
+@pytest.mark.parametrize("far_cells", [None, 8])
+def test_coherence_gives_identical_results_over_an_animation(device, monkeypatch, far_cells):
+    """Also with far corners searched by subtree (which corners are far depends on where searches start)."""
+    from badf.server.adf._distance import CornerField
+
+    monkeypatch.setattr(CornerField, "far_cells", far_cells)
     frames, faces = meshes.load_sequence("vlasic_samba")
     frames = frames[::6]  # 10 frames, so the test stays short on the CPU back-end
     with_coherence = DistanceField(frames[0], faces, depth=6, coherence=True, device=device)
@@ -213,9 +218,9 @@ def test_coherence_gives_identical_results_over_an_animation(device):
         if device == "cpu":
             np.testing.assert_array_equal(got, expected)
         else:
-            # CUDA: a seed's distance and a walk's are the same arithmetic inlined at two places, which the
-            # compiler may round differently (H100, 2026-11-22: up to 260 of 12.7K corners differ, by 1.2e-7
-            # at most); within the exact tolerance here, bit equality reported below as a known failure
+            # CUDA: with fused multiply-adds, a seed's distance and a walk's (the same arithmetic inlined at
+            # two places) were rounded differently (H100, 2026-11-22: up to 260 of 12.7K corners, by 1.2e-7
+            # at most; see EXACT_ROUNDING); within the exact tolerance here, bit equality reported below
             assert np.all(np.abs(got - expected) <= tol.EXACT_DISTANCE * diag)
             assert np.array_equal(np.sign(got), np.sign(expected))
             bit_differences += int(np.sum(got != expected))

@@ -35,6 +35,14 @@ from badf.server.adf._geometry import (
 from badf.server.adf._octree import OctreeView, leaf_corner, locate
 from badf.server.adf._sign import SIGN_PSEUDONORMAL, SIGN_WINDING, SignView, feature_normal, inside_by_pseudonormal, inside_by_winding
 
+# No fused multiply-adds in this module's kernels (nor in the point queries'): with them, the compiler may
+# round the same triangle arithmetic differently where it is inlined at two places, so a seed's distance
+# and the walk's, or a whole search's and a subtree search's, could differ in their last bits, and frames
+# with and without coherence would not agree bit for bit on CUDA (found on an H100, 2026-11-22: up to 260
+# of 12.7K corners of vlasic_samba, by at most 1.2e-7).
+EXACT_ROUNDING = {"fuse_fp": False}
+wp.set_module_options(EXACT_ROUNDING)
+
 # Output selection bits of a point query.
 OUT_DISTANCE = 1
 OUT_CLOSEST = 2
@@ -837,4 +845,5 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         if outputs & _OUT_FACE:
             out_face[i] = face
 
-    return wp.kernel(query_points, name=f"query_points_{method}", enable_backward=False, module="unique")
+    return wp.kernel(query_points, name=f"query_points_{method}", enable_backward=False, module="unique",
+                     module_options=EXACT_ROUNDING)
