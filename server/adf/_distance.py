@@ -105,6 +105,7 @@ class SearchSplit:
 # the corners at most (more are searched whole).
 _FAR_SPLIT = (6, 4096)
 FAR_LIST_FRACTION = 8
+FAR_CELLS = 12
 _FAR_LIST_FRACTION = wp.constant(FAR_LIST_FRACTION)
 
 # (budget, levels, groups) where splitting pays, and the corner count per SM below which it does.
@@ -122,7 +123,7 @@ class CornerField:
     """
 
     # Corners whose starting bound is this many finest cells or more are searched by BVH subtree beside the
-    # other corners (list_far_corners); None or 0: off (see far_cells_for).
+    # other corners (list_far_corners); 0: off; None: chosen by far_cells_for.
     far_cells: int | None = None
 
     def __init__(self, buffers: DeviceBuffers):
@@ -264,19 +265,20 @@ class CornerField:
         return split if internal_count > 0 else _WHOLE
 
     def far_cells_for(self, sign_method: int) -> int:
-        """The far-corner threshold `compute` uses with this sign method: far_cells where it is set, else 0.
+        """The far-corner threshold `compute` uses with this sign method: far_cells where it is set, else
+        FAR_CELLS on CUDA when no winding numbers run beside the searches, else 0.
 
-        Off by default. On an H100 (2026-11-22) it shortened the distance stage where no winding numbers
-        run beside the searches: the armadillo (pseudonormals) from 1.43 to 1.31 ms at depth 7 and from
-        2.46 to 1.95 ms at depth 8 (12 cells). Where winding numbers run beside, they already fill the SMs
-        the long walks leave idle, and the bunny gained nothing (depth 7: 2.00 against 1.96 ms). But on CUDA
-        the subtree kernel rounds a triangle's distance differently from the whole search (within 3e-8 of
-        the diagonal, no sign changed), and which corners are far depends on where their searches start,
-        so coherent and non-coherent frames would no longer agree bit for bit. Computing every final
-        distance in one kernel moved the differences to ties between equally near faces (1 ulp) instead
-        of removing them. `badf bench engine --far-sweep` measures it."""
+        The searches leave most SMs idle while their longest walks (corners far from the surface) finish.
+        Without winding numbers beside them, searching far corners by subtree from the stage's start shortened
+        the distance stage of the armadillo (pseudonormals; H100, 2026-11-22, three runs) from 1.39-1.46 to
+        1.29-1.34 ms at depth 7 and from 2.43-2.50 to 1.93-2.03 ms at depth 8 (12 cells). Where winding
+        numbers run beside, they already fill those SMs: the bunny's stage stayed at 1.95-2.02 ms at depth 7
+        and 4.45-4.59 at depth 8 with or without. On the CPU back-end threads run one after another, so
+        splitting only adds work. With EXACT_ROUNDING the values do not depend on which search found them."""
         if self.far_cells is not None:
             return self.far_cells
+        if self._beside.enabled and sign_method != SIGN_WINDING:
+            return FAR_CELLS
         return 0
 
     def cut_levels(self, split: SearchSplit, sign_method: int) -> list[int]:
