@@ -270,10 +270,10 @@ class CornerField:
 
         The searches leave most SMs idle while their longest walks (corners far from the surface) finish.
         Without winding numbers beside them, searching far corners by subtree from the stage's start shortened
-        the distance stage of the armadillo (pseudonormals; H100, 2026-11-22, three runs) from 1.39-1.46 to
-        1.29-1.34 ms at depth 7 and from 2.43-2.50 to 1.93-2.03 ms at depth 8 (12 cells). Where winding
-        numbers run beside, they already fill those SMs: the bunny's stage stayed at 1.95-2.02 ms at depth 7
-        and 4.45-4.59 at depth 8 with or without. On the CPU back-end threads run one after another, so
+        the distance stage of the armadillo (pseudonormals; H100, 2026-11-22, docs/results/far-*) from
+        1.39-1.46 to 1.27-1.34 ms at depth 7 (four runs) and from 2.43-2.50 to 1.93-2.03 ms at depth 8 (three
+        runs), at 12 cells. Where winding numbers run beside, they already fill those SMs: the bunny's stage
+        was 1.94-2.02 ms at depth 7 and 4.42-4.59 at depth 8 with or without. On the CPU back-end threads run one after another, so
         splitting only adds work. With EXACT_ROUNDING the values do not depend on which search found them."""
         if self.far_cells is not None:
             return self.far_cells
