@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One call on a GPU machine (the device tool): set up, check on CUDA, then time.
-#   bash bench/gpu_session.sh [tests] [engine] [split] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] ...
+#   bash bench/gpu_session.sh [tests] [engine] [split] [far] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] ...
 # Expects warp-lang and the wheels unpacked by ../shared/gpu/setup.sh (sourced before), the shared meshes
 # copied into $BADF_SHARED_DATA (default .gpudata/), and writes logs and JSON under $OUT.
 set -uo pipefail
@@ -22,6 +22,13 @@ for step in "$@"; do
       # the corner stage with long searches shared out over BVH subtrees or not, at depths 5 to 8
       python3 -m badf.bench.engine --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --repeat 15 --split-sweep 5 6 7 8 \
         --out "$out/split-sweep-bunny.json" 2>&1 | tee "$out/split-sweep-bunny.log" ;;
+    far)
+      # far corners searched by subtree beside the others (12 cells by default where no winding numbers run
+      # beside the searches) against off, on a closed and an open mesh at depths 7 and 8
+      for mesh in armadillo-86k stanford-bunny; do
+        python3 -m badf.bench.engine --mesh "$BADF_SHARED_DATA/$mesh.npz" --repeat 10 --far-sweep 7 8 \
+          --out "$out/far-$mesh.json" 2>&1 | tee "$out/far-$mesh.log" | grep -v '^Module'
+      done ;;
     kernels)
       # one default update, kernel by kernel: device busy time against the update's span
       python3 -m badf.bench.engine --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --repeat 10 --kernels --block-sweep --register-sweep \
