@@ -479,6 +479,14 @@ def print_search_split(sweep: dict) -> None:
     )
 
 
+def _write_part(args: argparse.Namespace, benchmark: str, device: str, faces, results: dict) -> None:
+    """Write one of the single-part runs (--kernels, --far-sweep, --split-sweep) as JSON, where --out asks."""
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump({"benchmark": benchmark, "date": timestamp(), "device": bench_device_name(device),
+                       "mesh": {"path": args.mesh, "faces": len(faces)}, **results}, f, indent=1)
+
+
 def run(args: argparse.Namespace) -> int:
     device = start_warp(args.device)
     vertices, faces = load_npz(args.mesh)
@@ -502,10 +510,7 @@ def run(args: argparse.Namespace) -> int:
                         [[r["searches_cap"] or "engine's", r["searches_ms"], r["searches_registers"],
                           r["searches_local_bytes"], r["signs_cap"] or "engine's", r["signs_ms"], r["signs_registers"],
                           r["signs_local_bytes"], r["distances_ms"]] for r in caps["rows"]])
-        if args.out:
-            with open(args.out, "w") as f:
-                json.dump({"benchmark": "engine-kernels", "date": timestamp(), "device": bench_device_name(device),
-                           "mesh": {"path": args.mesh, "faces": len(faces)}, **profile}, f, indent=1)
+        _write_part(args, "engine-kernels", device, faces, profile)
         return 0
     if args.far_sweep:
         sweeps = []
@@ -519,22 +524,14 @@ def run(args: argparse.Namespace) -> int:
                         [[r["far_cells"], r["distances_ms"], r["update_gpu_ms"], r["far_corners"], r["value_mismatches"],
                           f"{r['max_difference_diag']:.2g}", r["sign_flips"], r["face_differences"]]
                          for r in sweep["settings"]])
-        if args.out:
-            with open(args.out, "w") as f:
-                json.dump({"benchmark": "engine-far-corners", "date": timestamp(), "device": bench_device_name(device),
-                           "mesh": {"path": args.mesh, "faces": len(faces)}, "repeat": repeat, "sweeps": sweeps},
-                          f, indent=1)
+        _write_part(args, "engine-far-corners", device, faces, {"repeat": repeat, "sweeps": sweeps})
         return 0
     if args.split_sweep:
         sweeps = []
         for depth in args.split_sweep:
             sweeps.append(measure_search_split(vertices, faces, depth=depth, device=device, repeat=repeat))
             print_search_split(sweeps[-1])
-        if args.out:
-            with open(args.out, "w") as f:
-                json.dump({"benchmark": "engine-search-split", "date": timestamp(), "device": bench_device_name(device),
-                           "mesh": {"path": args.mesh, "faces": len(faces)}, "repeat": repeat, "sweeps": sweeps},
-                          f, indent=1)
+        _write_part(args, "engine-search-split", device, faces, {"repeat": repeat, "sweeps": sweeps})
         return 0
     report = {
         "benchmark": "engine",

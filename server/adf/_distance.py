@@ -353,16 +353,36 @@ class PointQuery:
 
 
 @wp.func
-def _nearest_with_band(bvh: BvhView, p: wp.vec3, seed: int, band: float, budget: int):
-    """Nearest leaf from a seed leaf in at most `budget` node visits: (leaf, squared distance, finished);
-    leaf -1 when nothing lies within `band` (> 0). An unfinished search's answer is an upper bound."""
+def _seed_bound(bvh: BvhView, p: wp.vec3, seed: int, band: float):
+    """A search's start from its seed leaf: (the seed, its squared distance), or (-1, band^2) where the
+    seed lies beyond `band` (> 0)."""
     best_sq = leaf_distance_sq(bvh, seed, p)
     best = seed
     if band > 0.0 and band * band < best_sq:
         best = -1
         best_sq = band * band
+    return best, best_sq
+
+
+@wp.func
+def _nearest_with_band(bvh: BvhView, p: wp.vec3, seed: int, band: float, budget: int):
+    """Nearest leaf from a seed leaf in at most `budget` node visits: (leaf, squared distance, finished);
+    leaf -1 when nothing lies within `band` (> 0). An unfinished search's answer is an upper bound."""
+    best, best_sq = _seed_bound(bvh, p, seed, band)
     best, best_sq, finished = nearest_leaf_within(bvh, p, best, best_sq, budget)
     return best, best_sq, finished
+
+
+@wp.func
+def _corner_seed(bvh: BvhView, p: wp.vec3, origin: wp.vec3, inv_side: float, depth: int, coherent: int,
+                 previous_keys: wp.array(dtype=wp.int64), previous_face: wp.array(dtype=wp.int32),
+                 previous_count: wp.array(dtype=wp.int32), previous_capacity: int, previous_origin: wp.vec3,
+                 previous_inv_cell: float) -> int:
+    """A corner's seed leaf: by last frame's nearest face (coherent), else by Morton key."""
+    if coherent != 0:
+        return coherent_seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity,
+                             previous_origin, previous_inv_cell)
+    return spatial_seed(bvh, p, origin, inv_side)
 
 
 @wp.func
@@ -500,11 +520,9 @@ def corner_searches(
             if seeded_far_count[0] >= 0:
                 return  # a far corner, searched by subtree
             seed = -2 - seed
-    elif coherent != 0:
-        seed = coherent_seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity,
-                             previous_origin, previous_inv_cell)
     else:
-        seed = spatial_seed(bvh, p, origin, inv_side)
+        seed = _corner_seed(bvh, p, origin, inv_side, depth, coherent, previous_keys, previous_face, previous_count,
+                            previous_capacity, previous_origin, previous_inv_cell)
     best_leaf, best_sq, finished = _nearest_with_band(bvh, p, seed, band, budget)
     if best_leaf >= 0:
         distance[i] = wp.sqrt(best_sq)
@@ -552,18 +570,10 @@ def list_far_corners(
     if i >= wp.min(count[0], capacity):
         return
     p = _lattice_point(corner_keys[i], origin, cell)
-    seed = int(-1)
-    if coherent != 0:
-        seed = coherent_seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity,
-                             previous_origin, previous_inv_cell)
-    else:
-        seed = spatial_seed(bvh, p, origin, inv_side)
+    seed = _corner_seed(bvh, p, origin, inv_side, depth, coherent, previous_keys, previous_face, previous_count,
+                        previous_capacity, previous_origin, previous_inv_cell)
     seeds[i] = seed
-    best_sq = leaf_distance_sq(bvh, seed, p)
-    best = seed
-    if band > 0.0 and band * band < best_sq:
-        best = -1
-        best_sq = band * band
+    best, best_sq = _seed_bound(bvh, p, seed, band)
     if best_sq < far_sq:
         return
     seeds[i] = -2 - seed  # far: corner_searches leaves it unless _settle_far_list drops the list
