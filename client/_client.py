@@ -265,7 +265,14 @@ class Client:
         """The one reply of `worker` to `request` on `key`, decoded as `expect`, or the error it carries."""
         self._check_worker(worker, name)
         for reply in self._get(key, request, timeout=timeout, cancellation=self._cancellation(worker)):
-            return self._read_reply(reply, expect, key, timeout)
+            try:
+                return self._read_reply(reply, expect, key, timeout)
+            except WorkerUnavailableError:
+                # a request cancelled because its worker went may end in Zenoh's error reply ("Query was
+                # cancelled") rather than with no reply: the same news either way
+                if self._worker_gone(worker):
+                    raise _worker_gone_error(worker, name, seen_going=True) from None
+                raise
         raise self._nobody_answered(key, name=name, worker=worker, timeout=timeout)
 
     def _ask_all(self, key: str, request: Message, expect: type[M], *, timeout: float | None) -> list[M]:

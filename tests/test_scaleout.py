@@ -19,6 +19,7 @@ from test_worker_plumbing import FACES, POINTS, VERTICES, ThreadWorker, expected
 
 from badf.client import Client
 from badf.protocol import (
+    DEFAULT_LIMITS,
     InfoRequest,
     KeySpace,
     NotSupportedError,
@@ -142,6 +143,34 @@ def test_a_worker_that_leaves_makes_its_objects_unavailable_and_reregister_resto
             moved.reregister()
         with pytest.raises(NotSupportedError):
             client.object("kept").reregister()
+
+
+def test_a_cancelled_request_to_a_gone_worker_is_object_unavailable_however_zenoh_ends_it() -> None:
+    """When a worker's liveliness token goes, the client cancels the requests in flight to it. Zenoh may end
+    such a request with no reply or with an error reply of its own ("Query was cancelled"), whichever comes
+    first under load; both must read as ObjectUnavailableError. (Seen once in a full CI-like run: one of
+    two requests in flight got WorkerUnavailableError from the error reply.) The same error reply from a
+    worker still alive stays a WorkerUnavailableError."""
+    from badf.client._client import Client as ClientClass
+
+    class ErrorReply:  # what Zenoh hands over: ok None, err with a payload
+        ok = None
+
+        def __init__(self, text: str):
+            self.err = type("Err", (), {"payload": type("Payload", (), {"to_bytes": lambda _: text.encode()})()})()
+
+    client = ClientClass.__new__(ClientClass)  # no session: only the reply handling is under test
+    client.keys, client.timeout, client.limits = KeySpace("badf"), 5.0, DEFAULT_LIMITS
+    client._lock, client._live, client._gone, client._cancellations = threading.Lock(), {"right"}, set(), {}
+    client._get = lambda *args, **kwargs: [ErrorReply("Query was cancelled at session.rs:2681.")]
+    with pytest.raises(WorkerUnavailableError) as alive:
+        client._ask("badf/objects/cow/query", InfoRequest("cow"), ObjectInfo, timeout=None, worker="right", name="cow")
+    assert not isinstance(alive.value, ObjectUnavailableError)
+    client._live.discard("right")
+    client._gone.add("right")
+    client._check_worker = lambda worker, name: None  # as for a request sent before the token went
+    with pytest.raises(ObjectUnavailableError):
+        client._ask("badf/objects/cow/query", InfoRequest("cow"), ObjectInfo, timeout=None, worker="right", name="cow")
 
 
 def test_a_request_in_flight_ends_when_its_worker_goes(endpoint: str) -> None:
