@@ -143,7 +143,7 @@ class CornerField:
         self.split: SearchSplit | None = None  # None: SearchSplit.automatic for each compute
         self._last_split = _WHOLE
         self._last_far_cells = 0
-        self._beside = SideStream(self.device)  # winding numbers run on it, beside the searches
+        self._beside = SideStream(self.device)  # winding numbers and far corners run on it, beside the searches
 
     def compute(self, corner_keys: wp.array, count: wp.array, capacity: int, expected_count: int, bvh: BvhView, cuts,
                 sign: SignView, centre: np.ndarray, side: float, depth: int, band: float | None, *,
@@ -216,8 +216,8 @@ class CornerField:
         if splitting:
             ways = 1 << split.levels
             wp.launch(_split_searches, dim=split.groups * ways,
-                      inputs=[corner_keys, origin, cell, bvh, cuts(split.levels), split.levels, split.groups, long_count,
-                              capacity, long_corner, long_bound],
+                      inputs=[corner_keys, origin, cell, bvh, cuts(split.levels), split.levels, split.groups,
+                              long_count, capacity, long_corner, long_bound],
                       outputs=[long_best], device=self.device)
             wp.launch(_gather_split, dim=split.groups,
                       inputs=[split.groups, long_count, capacity, long_corner, long_best],
@@ -273,8 +273,9 @@ class CornerField:
         the distance stage of the armadillo (pseudonormals; H100, 2026-11-22, docs/results/far-*) from
         1.39-1.46 to 1.27-1.34 ms at depth 7 (four runs) and from 2.43-2.50 to 1.93-2.03 ms at depth 8 (three
         runs), at 12 cells. Where winding numbers run beside, they already fill those SMs: the bunny's stage
-        was 1.94-2.02 ms at depth 7 and 4.42-4.59 at depth 8 with or without. On the CPU back-end threads run one after another, so
-        splitting only adds work. With EXACT_ROUNDING the values do not depend on which search found them."""
+        was 1.94-2.02 ms at depth 7 and 4.42-4.59 at depth 8 with or without. On the CPU back-end threads run
+        one after another, so splitting only adds work. With EXACT_ROUNDING the values do not depend on which
+        search found them."""
         if self.far_cells is not None:
             return self.far_cells
         if self._beside.enabled and sign_method != SIGN_WINDING:
