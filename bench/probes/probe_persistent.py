@@ -33,7 +33,7 @@ def persistent(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.i
         distance[i] = wp.sqrt(best_sq)
         nearest[i] = best_leaf
         if not finished:
-            D.list_long_search(i, best_sq, best_leaf, long_count, long_corner, long_bound, long_best)
+            D.list_long_search(i, best_sq, best_leaf, capacity, long_count, long_corner, long_bound, long_best)
         i = wp.atomic_add(next_item, 0, 1)
 
 

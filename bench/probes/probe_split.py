@@ -34,7 +34,7 @@ def searches(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int
     distance[i] = wp.sqrt(best_sq)
     nearest[i] = best_leaf
     if not finished:
-        D.list_long_search(i, best_sq, best_leaf, long_count, long_corner, long_bound, long_best)
+        D.list_long_search(i, best_sq, best_leaf, capacity, long_count, long_corner, long_bound, long_best)
 
 DEV = sys.argv[2] if len(sys.argv) > 2 else "cuda:0"
 field, inputs, n, truth = captured_search(sys.argv[1], DEV)

@@ -461,14 +461,31 @@ def coherent_seed(bvh: BvhView, p: wp.vec3, depth: int, previous_keys: wp.array(
 
 
 @wp.func
-def list_long_search(corner: int, best_sq: float, best_leaf: int, long_count: wp.array(dtype=wp.int32),
+def list_long_search(corner: int, best_sq: float, best_leaf: int, listed: int, long_count: wp.array(dtype=wp.int32),
                      long_corner: wp.array(dtype=wp.int32), long_bound: wp.array(dtype=wp.float32),
-                     long_best: wp.array(dtype=wp.int64)):
-    """A search too long for one thread: _split_searches takes it on from the bound it reached."""
+                     long_best: wp.array(dtype=wp.int64)) -> bool:
+    """A search too long for one thread, for _split_searches to take on from the bound it reached; whether
+    it fitted the list's `listed` entries (the count goes on past them)."""
     item = wp.atomic_add(long_count, 0, 1)
+    if item >= listed:
+        return False
     long_corner[item] = corner
     long_bound[item] = best_sq
     long_best[item] = pack_distance_leaf(best_sq, best_leaf)
+    return True
+
+
+@wp.func
+def _write_answer(i: int, best: int, best_sq: float, seed: int, band: float, distance: wp.array(dtype=wp.float32),
+                  nearest: wp.array(dtype=wp.int32)):
+    """A corner's unsigned distance and nearest leaf, or (band, -1 - seed) where nothing lay within the band
+    (the sign kernel turns the seed back into its leaf)."""
+    if best >= 0:
+        distance[i] = wp.sqrt(best_sq)
+        nearest[i] = best
+    else:
+        distance[i] = band
+        nearest[i] = -1 - seed
 
 
 @wp.kernel(enable_backward=False)
@@ -525,14 +542,9 @@ def corner_searches(
         seed = _corner_seed(bvh, p, origin, inv_side, depth, coherent, previous_keys, previous_face, previous_count,
                             previous_capacity, previous_origin, previous_inv_cell)
     best_leaf, best_sq, finished = _nearest_with_band(bvh, p, seed, band, budget)
-    if best_leaf >= 0:
-        distance[i] = wp.sqrt(best_sq)
-        nearest[i] = best_leaf
-    else:
-        distance[i] = band
-        nearest[i] = -1 - seed
+    _write_answer(i, best_leaf, best_sq, seed, band, distance, nearest)
     if not finished:
-        list_long_search(i, best_sq, best_leaf, long_count, long_corner, long_bound, long_best)
+        list_long_search(i, best_sq, best_leaf, capacity, long_count, long_corner, long_bound, long_best)
 
 
 @wp.kernel(enable_backward=False)
@@ -578,18 +590,8 @@ def list_far_corners(
     if best_sq < far_sq:
         return
     seeds[i] = -2 - seed  # far: corner_searches leaves it unless _settle_far_list drops the list
-    item = wp.atomic_add(far_count, 0, 1)
-    if item >= far_capacity:
-        return
-    far_corner[item] = i
-    far_bound[item] = best_sq
-    far_best[item] = pack_distance_leaf(best_sq, best)
-    if best >= 0:
-        distance[i] = wp.sqrt(best_sq)
-        nearest[i] = best
-    else:
-        distance[i] = band
-        nearest[i] = -1 - seed
+    if list_long_search(i, best_sq, best, far_capacity, far_count, far_corner, far_bound, far_best):
+        _write_answer(i, best, best_sq, seed, band, distance, nearest)  # the start, which the split improves on
 
 
 @wp.kernel(enable_backward=False)

@@ -422,9 +422,9 @@ class DistanceField:
         rebuilt): its buffers keep last frame's sizes with headroom and nothing is read back until the end,
         when the frame's counts are checked against them; a frame that outgrew them is run again, measured.
         On CUDA a planned frame is replayed from a CUDA graph, captured from an identical planned frame
-        (same sizes, domain and settings), so it costs one launch. Each object runs its frames on a stream of its own: the graph
-        holds the sort's scratch memory, which Warp keeps per stream and another object's larger sort
-        would otherwise reallocate.
+        (same sizes, domain and settings), so it costs one launch. Each object runs its frames on a stream
+        of its own: the graph holds the sort's scratch memory, which Warp keeps per stream and another
+        object's larger sort would otherwise reallocate.
         """
         wall = time.perf_counter()
         clock = self._clock
