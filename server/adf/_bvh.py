@@ -50,7 +50,7 @@ BVH_CODE_LEVELS = 10
 _CODE_SHIFT = wp.constant(32)
 _FAR_FIELD = wp.constant(WINDING_FAR_FIELD)
 _INV_FOUR_PI = wp.constant(1.0 / (4.0 * math.pi))
-LEAF_SIZE = wp.constant(4)
+LEAF_SIZE = wp.constant(1)
 UNLIMITED_VISITS = wp.constant(2**31 - 1)
 
 
@@ -247,12 +247,10 @@ def _xyz(v: wp.vec4) -> wp.vec3:
 def _nearest_in_range(bvh: BvhView, p: wp.vec3, first: int, count: int, best_leaf: int, best_sq: float):
     for leaf in range(first, first + count):
         a, b, c = leaf_triangle(bvh, leaf)
-        # the triangle's own box first: it turns away most neighbours of the nearest for a few min/max
-        if box_distance_sq(p, wp.min(wp.min(a, b), c), wp.max(wp.max(a, b), c)) < best_sq:
-            d_sq = triangle_distance_sq(p, a, b, c)
-            if d_sq < best_sq:
-                best_sq = d_sq
-                best_leaf = leaf
+        d_sq = triangle_distance_sq(p, a, b, c)
+        if d_sq < best_sq:
+            best_sq = d_sq
+            best_leaf = leaf
     return best_leaf, best_sq
 
 
