@@ -578,6 +578,8 @@ def stability_cases(*, large_batch: int = _LARGE_BATCH) -> list[StabilityCase]:
         StabilityCase("offset by 1e5 (float64 input)", g, relative, mesh_case(scaled_sphere(1.0, 1e5), solid=_SOLID)),
         StabilityCase("scaled by 1e-5", g, relative, mesh_case(scaled_sphere(1e-5, 0.0), solid=_SOLID)),
         StabilityCase("scaled by 1e5", g, relative, mesh_case(scaled_sphere(1e5, 0.0), solid=_SOLID)),
+        StabilityCase("scaled by 1e-30", g, relative, mesh_case(scaled_sphere(1e-30, 0.0), solid=_SOLID)),
+        StabilityCase("scaled by 1e12", g, relative, mesh_case(scaled_sphere(1e12, 0.0), solid=_SOLID)),
         StabilityCase("offset by 1e5 (float32 input)", g,
                       "exact within 1e-5 diag + the float32 rounding of the input coordinates (2*sqrt(3)*2^-24*|x|)",
                       float32_input_case(1e5)),

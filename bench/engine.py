@@ -215,14 +215,14 @@ def measure_traversals(field, vertices, faces, *, device: str, repeat: int) -> d
             out[i] = bound[i]
 
     positions, values, nearest_faces = field.corner_samples()
-    centre = np.asarray(field.info()["domain"]["centre"])
-    local = (positions - centre).astype(np.float32)
+    domain = field._domain  # both searches run in the engine's local coordinates
+    local = domain.to_local(positions)
     points = wp.array(local, dtype=wp.vec3, device=device)
     leaf_of_face = np.empty(len(faces), np.int32)
     leaf_of_face[field._bvh.leaf_faces()] = np.arange(len(faces), dtype=np.int32)
     seeds = wp.array(leaf_of_face[nearest_faces], dtype=wp.int32, device=device)
-    bound = wp.array(np.abs(values).astype(np.float32), dtype=wp.float32, device=device)
-    mesh = wp.Mesh(points=wp.array((vertices - centre).astype(np.float32), dtype=wp.vec3, device=device),
+    bound = wp.array(np.abs(values * domain.scale).astype(np.float32), dtype=wp.float32, device=device)
+    mesh = wp.Mesh(points=wp.array(domain.to_local(vertices), dtype=wp.vec3, device=device),
                    indices=wp.array(faces.reshape(-1), dtype=wp.int32, device=device))
     bvh = field._bvh.view()
     n = len(local)

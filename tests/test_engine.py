@@ -9,7 +9,7 @@ import warp as wp
 import meshes
 import oracle
 import tolerances as tol
-from badf.server.adf import DistanceField
+from badf.server.adf import DistanceField, InvalidInputError
 from badf.server.adf._bvh import BvhView, winding_number
 
 ALL_OUTPUTS = ("distance", "closest_point", "normal", "face")
@@ -319,9 +319,8 @@ def test_fast_winding_numbers_match_the_oracle_at_the_corners(device, name):
     rng = np.random.default_rng(5)
     positions = positions[rng.choice(len(positions), min(1500, len(positions)), replace=False)]
     positions = positions[oracle.nearest(positions, vertices, faces).distance > 1e-6 * oracle.bbox_diagonal(vertices)]
-    centre, _ = domain_of(field)
     w = wp.zeros(len(positions), dtype=wp.float32, device=device)
-    local = wp.array((positions - centre).astype(np.float32), dtype=wp.vec3, device=device)
+    local = wp.array(field._domain.to_local(positions), dtype=wp.vec3, device=device)  # the BVH's coordinates
     wp.launch(_winding_numbers, dim=len(positions), inputs=[field._bvh.view(), local], outputs=[w], device=device)
     error = np.abs(w.numpy() - oracle.winding_number(positions, vertices, faces))
     assert error.max() <= tol.FAST_WINDING, f"largest error {error.max():.3g} of {len(positions)} corners"
@@ -572,3 +571,79 @@ def test_a_failed_graph_capture_falls_back_to_kernel_by_kernel(device, monkeypat
             np.testing.assert_array_equal(got, expected)
     assert not field.use_graphs and field.stats()["graph_captures"] == 0
     assert "graph capture failed" in caplog.text
+
+
+@pytest.mark.parametrize("name", ["fandisk", "torus"])
+def test_fields_at_any_power_of_two_scale_equal_the_unit_field_scaled_to_the_bit(device, name):
+    """The device works in coordinates scaled by a power of two near 1 / the domain's side, an exact operation,
+    so a mesh scaled by 2^k answers exactly 2^k times the unit mesh's distances and closest points. Without it,
+    triangles of edge 1e7 overflowed float32 in the triangle test (NaN), and ones of edge 1e-7 underflowed
+    (wrong distances and signs); a mesh of size 1e-38 crashed the process."""
+    vertices, faces = meshes.load(name)
+    vertices = vertices - vertices.mean(axis=0)
+    rng = np.random.default_rng(7)
+    unit = DistanceField(vertices, faces, depth=5, device=device)
+    points = query_points(unit, vertices, faces, rng, count=120)
+    answers = {mode: unit.query(points, mode=mode, outputs=ALL_OUTPUTS) for mode in ("exact", "adf")}
+    for power in (-100, -60, -24, 24, 40):  # sizes from 1e-30 to 1e12 (smaller ones give subnormal float32 answers)
+        scale = 2.0**power
+        field = DistanceField(vertices * scale, faces, depth=5, device=device)
+        field.update(vertices * scale)  # a planned frame as well as the build
+        for mode, expected in answers.items():
+            got = field.query(points * scale, mode=mode, outputs=ALL_OUTPUTS)
+            assert np.array_equal(got.distance, (expected.distance * scale).astype(np.float32)), (power, mode)
+            assert np.array_equal(got.face, expected.face), (power, mode)
+            assert np.array_equal(got.normal, expected.normal), (power, mode)
+            assert np.allclose(got.closest_point, expected.closest_point * scale, rtol=0, atol=1e-6 * scale)
+
+
+@pytest.mark.parametrize("scale", [1e-38, 1e-7, 1e7, 1e15])
+def test_tiny_and_huge_meshes_match_the_oracle(device, scale):
+    """Non-power-of-two scales against the float64 oracle: distances within the usual bound relative to the
+    size, and signs right (the unit sphere and a tetrahedron at its corners)."""
+    for vertices, faces in (meshes.load("sphere"), (np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]),
+                                                    np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))):
+        vertices = vertices * scale
+        field = DistanceField(vertices, faces, depth=4, device=device)
+        rng = np.random.default_rng(3)
+        points = query_points(field, vertices, faces, rng, count=150)
+        truth = oracle.nearest(points, vertices, faces)
+        diag = oracle.bbox_diagonal(vertices)
+        for mode in ("exact", "adf"):
+            result = field.query(points, mode=mode, outputs=ALL_OUTPUTS)
+            assert np.all(np.isfinite(result.distance)) and np.all(np.isfinite(result.normal))
+            if mode == "exact":
+                allowed = tol.EXACT_DISTANCE * diag + 1e-6 * truth.distance
+                assert np.all(np.abs(np.abs(result.distance) - truth.distance) <= allowed)
+        winding = oracle.winding_number(points, vertices, faces)
+        clear = truth.distance > 1e-3 * diag
+        exact = field.query(points, mode="exact")
+        assert np.array_equal((exact.distance < 0)[clear], (np.abs(winding) > 0.5)[clear])
+
+
+def test_points_far_beyond_a_tiny_mesh_get_finite_exact_distances(device):
+    """A point 1e18 from a mesh of size 1e-30 is 1e48 of its sizes away, past float32's range when squared:
+    such points are moved in along the line to the domain's centre and the move added back."""
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]) * 1e-30
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    points = np.array([[1e18, 0.0, 0.0], [0.0, -3e17, 1e17], [1e-29, 2e-29, -1e-29], [1e-31, 1e-31, 1e-31]])
+    truth = oracle.nearest(points, vertices, faces)
+    for field in (DistanceField(vertices, faces, depth=3, device=device),
+                  DistanceField(vertices, faces, depth=3, band=1e-31, device=device)):
+        for dtype in (np.float64, np.float32):
+            result = field.query(points.astype(dtype), mode="exact", outputs=ALL_OUTPUTS)
+            assert np.all(np.isfinite(result.distance)) and np.all(np.isfinite(result.normal))
+            expected = truth.distance if field.info()["band"] is None else np.minimum(truth.distance, 1e-31)
+            assert np.allclose(np.abs(result.distance), expected, rtol=1e-6, atol=0)
+            assert result.distance[3] < 0 and np.all(result.distance[:3] > 0)
+            if field.info()["band"] is None:  # beyond a band the normal is zero
+                assert np.allclose(result.normal[0], [1, 0, 0], atol=1e-6)
+
+
+def test_a_band_below_what_float32_resolves_is_refused(device):
+    vertices, faces = meshes.load("sphere")
+    with pytest.raises(InvalidInputError, match="band must be at least"):
+        DistanceField(vertices, faces, depth=3, band=1e-30, device=device)
+    for bad in (True, "0.5"):
+        with pytest.raises(InvalidInputError, match="band must be"):
+            DistanceField(vertices, faces, depth=3, band=bad, device=device)

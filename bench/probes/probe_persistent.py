@@ -107,7 +107,7 @@ for name, kernel, threads, budget, levels, pairs in cases:
         times.append(((c1 - c0) * 1e3, (c2 - c1) * 1e3) if DEV == "cpu" else
                      (wp.get_event_elapsed_time(e0, e1), wp.get_event_elapsed_time(e1, e2)))
     t = np.median(np.array(times), axis=0)
-    err = float(np.abs(dist.numpy()[:n] - truth).max() / field._domain.side)
+    err = float(np.abs(dist.numpy()[:n] - truth).max() / field._domain.local_side)
     print(dict(kernel=name, pair_split=pairs, threads=threads, budget=budget if budget < UNL else "none", levels=levels,
                long=int(lcount.numpy()[0]), searches_ms=round(float(t[0]), 4), split_ms=round(float(t[1]), 4),
                total_ms=round(float(t.sum()), 4), max_err_side=err), flush=True)

@@ -75,7 +75,7 @@ for K, budget, levels in [(None, 2**31 - 1, 6), (None, 128, 6), (8, 2**31 - 1, 6
         wp.synchronize()
         times.append(((c1 - c0) * 1e3, (c2 - c1) * 1e3) if cpu else (wp.get_event_elapsed_time(e0, e1), wp.get_event_elapsed_time(e1, e2)))
     t = np.median(np.array(times), axis=0)
-    err = float(np.abs(dist.numpy()[:n] - truth).max() / field._domain.side)
+    err = float(np.abs(dist.numpy()[:n] - truth).max() / field._domain.local_side)
     rows.append(dict(far_cells=K, budget=budget if budget < 2**31 - 1 else "none", levels=levels,
                      long=int(lcount.numpy()[0]), far=int(flags.sum()), searches_ms=round(float(t[0]), 4),
                      split_ms=round(float(t[1]), 4), total_ms=round(float(t.sum()), 4), max_err_side=err))

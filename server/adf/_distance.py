@@ -146,23 +146,26 @@ class CornerField:
         self._beside = SideStream(self.device)  # winding numbers and far corners run on it, beside the searches
 
     def compute(self, corner_keys: wp.array, count: wp.array, capacity: int, expected_count: int, bvh: BvhView, cuts,
-                sign: SignView, centre: np.ndarray, side: float, depth: int, band: float | None, *,
-                coherent: bool) -> None:
+                sign: SignView, domain, depth: int, band: float | None, *, coherent: bool) -> None:
         """Distances at the corners (lattice keys, the first count[0] of at most `capacity`) of the domain
-        (centre, side), in local coordinates. The count stays on the device; `expected_count` (this frame's
-        or last frame's) only chooses how long searches are shared out. `cuts(levels)` gives the BVH's cut
-        that many levels deep (Bvh.cut)."""
+        (its world centre and side, and the scale to local coordinates), in local units. The count stays on
+        the device; `expected_count` (this frame's or last frame's) only chooses how long searches are shared
+        out. `cuts(levels)` gives the BVH's cut that many levels deep (Bvh.cut); `band` is in world units."""
         b = self.buffers
         self.value = b.ensure("corner.value", capacity, wp.float32)
         self.leaf = b.ensure("corner.leaf", capacity, wp.int32)
         use_previous = coherent and self._previous_capacity > 0
+        centre, scale = domain.centre, domain.scale
+        side = domain.side * scale
+        band = domain.local_band(band)
         cell = side / float(1 << depth)
         previous_origin = wp.vec3(0.0, 0.0, 0.0)
         previous_cell = cell
         if use_previous:
-            shift = (self._previous_centre - centre - self._previous_side / 2.0).astype(np.float32)
+            # last frame's lattice in this frame's local coordinates (its domain may have moved)
+            shift = ((self._previous_centre - centre) * scale - self._previous_side * scale / 2.0).astype(np.float32)
             previous_origin = wp.vec3(*shift)
-            previous_cell = self._previous_side / float(1 << depth)
+            previous_cell = self._previous_side * scale / float(1 << depth)
         half = side / 2.0
         origin = wp.vec3(-half, -half, -half)
         split = self.planned_split(expected_count, bvh.internal_count)
@@ -242,7 +245,7 @@ class CornerField:
         wp.copy(self._next_count, count, count=1)
         wp.launch(_leaf_faces, dim=capacity, inputs=[self.leaf, count, capacity, bvh], outputs=[next_face],
                   device=self.device)
-        self._next = (next_keys, next_face, capacity, np.asarray(centre, dtype=np.float64).copy(), side)
+        self._next = (next_keys, next_face, capacity, np.asarray(centre, dtype=np.float64).copy(), domain.side)
 
     def keep_frame(self) -> None:
         """Make the last computed frame's faces the next frame's starting bounds. A frame that outgrew its
@@ -320,11 +323,11 @@ class PointQuery:
         self.buffers = buffers
         self.device = buffers.device
 
-    def run(self, points: np.ndarray, offset: np.ndarray, *, exact: bool, outputs: int, octree: OctreeView,
-            corner_value: wp.array, corner_leaf: wp.array, bvh: BvhView, sign: SignView, side: float,
-            band: float | None, results: dict[str, np.ndarray], start: int) -> None:
-        """Answer one batch of float32 points, `points - offset` in the engine's local coordinates; copy the
-        asked outputs into results[...][start:]."""
+    def run(self, points: np.ndarray, offset: np.ndarray, scale: float, *, exact: bool, outputs: int,
+            octree: OctreeView, corner_value: wp.array, corner_leaf: wp.array, bvh: BvhView, sign: SignView,
+            side: float, band: float | None, results: dict[str, np.ndarray], start: int) -> None:
+        """Answer one batch of float32 points, `(points - offset) * scale` in the engine's local coordinates
+        (side and band in local units too); copy the asked outputs, in local units, into results[...][start:]."""
         b = self.buffers
         n = len(points)
         distance = b.ensure("query.distance", n if outputs & OUT_DISTANCE else 1, wp.float32)
@@ -336,7 +339,7 @@ class PointQuery:
         wp.launch(
             query_kernel(sign.method),
             dim=n,
-            inputs=[device_points, wp.vec3(*offset), 1 if exact else 0, outputs, octree, corner_value, corner_leaf,
+            inputs=[device_points, wp.vec3(*offset), scale, 1 if exact else 0, outputs, octree, corner_value, corner_leaf,
                     bvh, sign, 1.0 / side, band or 0.0],
             outputs=[distance, closest, normal, face],
             device=self.device,
@@ -733,6 +736,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
     def query_points(
         points: wp.array(dtype=wp.vec3),
         offset: wp.vec3,
+        to_local: float,
         exact: int,
         outputs: int,
         tree: OctreeView,
@@ -748,7 +752,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         out_face: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
-        p = points[i] - offset
+        p = (points[i] - offset) * to_local
         resolution = 1 << tree.depth
         g = (p - tree.origin) / tree.cell
         top = float(resolution)

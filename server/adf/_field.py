@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -45,7 +46,7 @@ from badf.server.adf._sign import (
     encloses_volume,
     resolve_sign,
 )
-from badf.server.adf._tolerances import DOMAIN_MARGIN, QUERY_CHUNK, REDOMAIN_MIN_FILL
+from badf.server.adf._tolerances import DOMAIN_MARGIN, FAR_POINT, MIN_BAND, QUERY_CHUNK, REDOMAIN_MIN_FILL
 
 log = logging.getLogger("badf.server")
 
@@ -98,10 +99,18 @@ class QueryResult:
 
 @dataclass(frozen=True)
 class _Domain:
-    """The cube the octree covers: centre (float64, exactly representable in float32) and side length."""
+    """The cube the octree covers: centre (float64, exactly representable in float32) and side length.
+
+    The device works in local coordinates: (world - centre) * scale, where scale is the power of two nearest
+    1 / side, so the domain's side is between 0.7 and 1.4 there whatever the mesh's size. Multiplying by a
+    power of two is exact in floating point, so every distance is the world one times scale to the bit,
+    while the kernels' squares and cubes of lengths stay far from float32's overflow and underflow (a
+    triangle of edge 1e7 or 1e-7 would otherwise reach them).
+    """
 
     centre: np.ndarray
     side: float
+    scale: float
 
     @staticmethod
     def fit(lo: np.ndarray, hi: np.ndarray, previous: _Domain | None = None) -> _Domain:
@@ -115,7 +124,7 @@ class _Domain:
             raise InvalidInputError("vertices must not all coincide: the mesh has zero extent")
         # the centre's float32 rounding must not push the mesh out of the cube
         side += 2.0 * float(np.max(np.abs(centre - (lo + hi) / 2.0)))
-        return _Domain(centre, side)
+        return _Domain(centre, side, math.ldexp(1.0, -round(math.log2(side))))
 
     def holds(self, lo: np.ndarray, hi: np.ndarray) -> bool:
         half = self.side / 2.0
@@ -123,11 +132,21 @@ class _Domain:
         return inside and float(np.max(hi - lo)) >= REDOMAIN_MIN_FILL * self.side
 
     def to_local(self, points: np.ndarray) -> np.ndarray:
-        return np.ascontiguousarray(points - self.centre.astype(points.dtype), dtype=np.float32)
+        """Local float32 coordinates of world points, recentred in their own precision (float64 stays exact)."""
+        return np.ascontiguousarray((points - self.centre.astype(points.dtype)) * self.scale, dtype=np.float32)
+
+    @property
+    def local_side(self) -> float:
+        return self.side * self.scale
+
+    def local_band(self, band: float | None) -> float | None:
+        """A band in local units, at least MIN_BAND of the side (so its square stays a normal float32)."""
+        return None if band is None else max(band * self.scale, MIN_BAND * self.local_side)
 
     @property
     def origin(self) -> wp.vec3:
-        half = self.side / 2.0
+        """The cube's lowest corner in local coordinates."""
+        half = self.local_side / 2.0
         return wp.vec3(-half, -half, -half)
 
 
@@ -191,10 +210,15 @@ class DistanceField:
 
         lo, hi = bounds(v)
         self._domain = _Domain.fit(lo, hi)
+        if self._band is not None and self._band < MIN_BAND * self._domain.side:
+            raise InvalidInputError(
+                f"band must be at least {MIN_BAND * self._domain.side:.3g} ({MIN_BAND:.3g} of the domain's side "
+                f"{self._domain.side:.3g}, about what float32 resolves there), got {self._band!r}")
         local = self._domain.to_local(v)
+        extent = float(np.max(hi - lo)) * self._domain.scale  # in local units, as everything on the device
         self._topology = analyse_topology(f, v)
         volume, area = enclosed_volume(local, f)
-        solid = self._topology.closed and encloses_volume(volume, area, float(np.max(hi - lo)))
+        solid = self._topology.closed and encloses_volume(volume, area, extent)
         self._flipped = bool(solid and volume < 0.0)
         if self._flipped:
             f = np.ascontiguousarray(f[:, [0, 2, 1]])
@@ -204,7 +228,7 @@ class DistanceField:
         self._counters = _Counters()
 
         with _device_lock(self._device):
-            self._build(local, f, len(v), area, float(np.max(hi - lo)))
+            self._build(local, f, len(v), area, extent)
 
     def _build(self, local: np.ndarray, f: np.ndarray, vertex_count: int, area: float, extent: float) -> None:
         self._buffers = DeviceBuffers(self._device)
@@ -247,8 +271,8 @@ class DistanceField:
             self._counters.domain_moves += 1
         # float32 frames are recentred on the device (the same float32 subtraction, without numpy's slow
         # (N, 3) broadcast); float64 ones on the host in float64, which keeps the precision far from the origin
-        self._apply(v if v.dtype == np.float32 else self._domain.to_local(v), float(np.max(hi - lo)),
-                    domain_moved=moved, recentre=v.dtype == np.float32)
+        self._apply(v if v.dtype == np.float32 else self._domain.to_local(v),
+                    float(np.max(hi - lo)) * self._domain.scale, domain_moved=moved, recentre=v.dtype == np.float32)
         self._frame += 1
         self._counters.updates += 1
         return self._frame
@@ -279,21 +303,35 @@ class DistanceField:
         bits = 0
         for name in names:
             bits |= OUTPUT_BITS[name]
-        tree = self._octree.view(self._domain.origin, self._domain.side)
+        domain = self._domain
+        tree = self._octree.view(domain.origin, domain.local_side)
         bvh, sign = self._bvh.view(), self._normals.view()
-        # float32 points are recentred on the device (the same float32 subtraction); float64 ones on the host
+        band = domain.local_band(self._band)
+        # float32 points are recentred on the device (the same float32 arithmetic); float64 ones on the host
         # in float64, which keeps the precision of points far from the origin
         on_device = p.dtype == np.float32
-        offset = self._domain.centre.astype(np.float32) if on_device else np.zeros(3, np.float32)
+        far, beyond = _pull_far_points(p, domain)
+        if far is not None:
+            p, on_device = far, False  # already local
+        offset = domain.centre.astype(np.float32) if on_device else np.zeros(3, np.float32)
+        scale = domain.scale if on_device else 1.0
         for start in range(0, count, QUERY_CHUNK):
             chunk = p[start : start + QUERY_CHUNK]
-            self._points.run(chunk if on_device else self._domain.to_local(chunk), offset,
+            self._points.run(chunk if on_device or far is not None else domain.to_local(chunk), offset, scale,
                              exact=mode == "exact", outputs=bits, octree=tree,
                              corner_value=self._corners.value, corner_leaf=self._corners.leaf, bvh=bvh, sign=sign,
-                             side=self._domain.side, band=self._band, results=arrays, start=start)
+                             side=domain.local_side, band=band, results=arrays, start=start)
+        # back to world units: dividing by a power of two is exact (in float64: the scale itself may exceed float32)
+        if "distance" in arrays:
+            distance = arrays["distance"]
+            distance[:] = distance / domain.scale
+            if beyond is not None:
+                rows, extra = beyond
+                moved = distance[rows] + extra
+                distance[rows] = moved if self._band is None else np.minimum(moved, self._band)
         if "closest_point" in arrays:
             closest = arrays["closest_point"]
-            closest += self._domain.centre.astype(np.float32)
+            closest[:] = closest / domain.scale + domain.centre
             if self._band is not None and "face" in arrays:
                 closest[arrays["face"] < 0] = 0.0
         for name, arr in arrays.items():
@@ -331,12 +369,13 @@ class DistanceField:
         with wp.ScopedDevice(self._device):
             lower, upper, level, leaf, empty = self._slice_cells.cells(
                 o.node_keys, o.child_mask, o.internal_count, self._depth, axis_index,
-                float(position - centre[axis_index]), self._domain.side, max_level,
+                float((position - centre[axis_index]) * self._domain.scale), self._domain.local_side, max_level,
             )
-        shift = centre.astype(np.float32)
+        to_world = 1.0 / self._domain.scale
         return Slice(axis=AXES[axis_index], position=position, distance=distance, u_range=u_range, v_range=v_range,
-                     cell_lower=lower + shift, cell_upper=upper + shift, cell_level=level, cell_is_leaf=leaf,
-                     cell_is_empty=empty, frame=self._frame)
+                     cell_lower=(lower * to_world + centre).astype(np.float32),
+                     cell_upper=(upper * to_world + centre).astype(np.float32), cell_level=level,
+                     cell_is_leaf=leaf, cell_is_empty=empty, frame=self._frame)
 
     @property
     def frame(self) -> int:
@@ -438,8 +477,8 @@ class DistanceField:
                 if recentre:
                     raw = self._buffers.ensure("mesh.frame", len(local_vertices), wp.vec3)
                     wp.copy(raw, host)
-                    wp.launch(_recentre, dim=len(local_vertices), inputs=[raw, wp.vec3(*self._domain.centre)],
-                              outputs=[self._vertices])
+                    wp.launch(_recentre, dim=len(local_vertices),
+                              inputs=[raw, wp.vec3(*self._domain.centre), self._domain.scale], outputs=[self._vertices])
                 else:
                     wp.copy(self._vertices, host)
                 self._normals.upload_extent(extent)
@@ -461,7 +500,7 @@ class DistanceField:
     def _pipeline(self, *, measure: bool, domain_moved: bool = False) -> None:
         """Queue one frame's kernels (measuring reads sizes back on the way) and its report."""
         clock = self._clock
-        origin, side = self._domain.origin, self._domain.side
+        origin, side = self._domain.origin, self._domain.local_side
         # the BVH and the sign data need only the vertices, as does the octree: on CUDA they run beside it
         beside = self._beside.fork()
         with wp.ScopedStream(beside, sync_enter=False) if beside is not None else contextlib.nullcontext():
@@ -477,7 +516,7 @@ class DistanceField:
         self._beside.join(beside)
         with clock.stage("distances"):
             self._corners.compute(o.corner_keys, o.corner_set.view.count, o.corner_capacity, o.corner_count,
-                                  self._bvh.view(), self._bvh.cut, self._normals.view(), self._domain.centre, side,
+                                  self._bvh.view(), self._bvh.cut, self._normals.view(), self._domain,
                                   self._depth, self._band, coherent=self._coherence)
         self._report_sizes = self._queue_report()
 
@@ -565,7 +604,7 @@ class DistanceField:
         cell = self._domain.side / (1 << self._depth)
         positions = self._domain.centre + (-self._domain.side / 2.0 + lattice * cell)
         n = self._octree.corner_count
-        values = self._corners.value.numpy()[:n].copy()  # on the CPU, numpy() is a view of the buffer
+        values = self._corners.value.numpy()[:n] / self._domain.scale  # a copy (on the CPU, numpy() is a view)
         faces = self._bvh.leaf_faces()[self._corners.leaf.numpy()[:n]]
         return positions, values, faces
 
@@ -578,9 +617,30 @@ class DistanceField:
 
 
 @wp.kernel(enable_backward=False)
-def _recentre(frame: wp.array(dtype=wp.vec3), centre: wp.vec3, local: wp.array(dtype=wp.vec3)):
+def _recentre(frame: wp.array(dtype=wp.vec3), centre: wp.vec3, scale: float, local: wp.array(dtype=wp.vec3)):
     i = wp.tid()
-    local[i] = frame[i] - centre
+    local[i] = (frame[i] - centre) * scale
+
+
+def _pull_far_points(points: np.ndarray, domain: _Domain):
+    """Points more than FAR_POINT domain sides from its centre, whose squared local distances could overflow
+    float32 in the kernels, are moved along the line to the centre until they are FAR_POINT sides away. At
+    that range every point of the mesh lies in the same direction to within float32's precision, so the
+    moved point has the same nearest face, closest point and normal, and a distance shorter by exactly the
+    move. Returns (all points in local float32 coordinates, (moved rows, their moves in world units)), or
+    (None, None) when no point is that far."""
+    if len(points) == 0:
+        return None, None
+    limit = FAR_POINT * domain.local_side
+    if float(np.abs(points).max()) <= limit / domain.scale / 2.0 - float(np.abs(domain.centre).max()):
+        return None, None  # every point is nearer than limit / sqrt(3) on every axis
+    local = (points.astype(np.float64) - domain.centre) * domain.scale
+    radius = np.sqrt(np.einsum("ij,ij->i", local, local))
+    rows = np.flatnonzero(radius > limit)
+    if len(rows) == 0:
+        return None, None
+    local[rows] *= (limit / radius[rows])[:, None]
+    return np.ascontiguousarray(local, dtype=np.float32), (rows, (radius[rows] - limit) / domain.scale)
 
 
 def bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -111,6 +111,8 @@ def check_halo(halo) -> int:
 def check_band(band) -> float | None:
     if band is None:
         return None
+    if isinstance(band, (bool, str, bytes)):
+        raise InvalidInputError(f"band must be a positive number or None, got {band!r}")
     try:
         value = float(band)
     except (TypeError, ValueError):

@@ -28,6 +28,15 @@ WINDING_FAR_FIELD = 2.0
 # (a doubled sheet, a flat closed shape); "auto" does not pick pseudonormals for it.
 MIN_ENCLOSED_VOLUME = 1.0e-6
 
+# The smallest band, as a fraction of the domain's side: a narrower one is below what float32 coordinates
+# resolve (about 6e-8 of the side), and its square would underflow. Registration refuses a smaller band; a
+# band that becomes smaller later (the domain grew) is widened to it.
+MIN_BAND = 2.0**-40
+
+# Query points farther than this many domain sides from the domain's centre are moved in along the line to
+# it (and the move added to their distance), so no square of a length overflows float32 in the kernels.
+FAR_POINT = 2.0**40
+
 # Points are sent to the device in batches of at most this many, so memory stays bounded.
 QUERY_CHUNK = 1 << 20
 
