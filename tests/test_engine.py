@@ -640,6 +640,24 @@ def test_points_far_beyond_a_tiny_mesh_get_finite_exact_distances(device):
                 assert np.allclose(result.normal[0], [1, 0, 0], atol=1e-6)
 
 
+def test_a_closed_mesh_given_inside_out_is_signed_like_the_right_way_round(device):
+    """Registration flips an inside-out closed mesh; the pseudonormals' corner angles and edge slots must
+    follow the flipped corner order (they were taken from the faces before the flip, which signed points
+    near the cube's corners wrongly)."""
+    vertices, faces = meshes.load("box")
+    grid = np.linspace(-0.8, 0.8, 17)
+    points = np.stack(np.meshgrid(grid, grid, grid, indexing="ij"), axis=-1).reshape(-1, 3)
+    points = points * np.abs(vertices).max() / 0.5
+    right = DistanceField(vertices, faces, depth=4, device=device)
+    inverted = DistanceField(vertices, faces[:, [0, 2, 1]], depth=4, device=device)
+    assert inverted.info()["orientation_flipped"] and not right.info()["orientation_flipped"]
+    for mode in ("exact", "adf"):
+        a = right.query(points, mode=mode).distance
+        b = inverted.query(points, mode=mode).distance
+        assert np.array_equal(np.sign(a), np.sign(b)), mode
+        assert np.allclose(a, b, rtol=0, atol=1e-6 * np.ptp(vertices))
+
+
 def test_a_band_below_what_float32_resolves_is_refused(device):
     vertices, faces = meshes.load("sphere")
     with pytest.raises(InvalidInputError, match="band must be at least"):

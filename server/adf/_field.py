@@ -222,6 +222,8 @@ class DistanceField:
         self._flipped = bool(solid and volume < 0.0)
         if self._flipped:
             f = np.ascontiguousarray(f[:, [0, 2, 1]])
+            # the pseudonormals' corner angles and edge slots are indexed by each face's corner order
+            self._topology = analyse_topology(f, v)
         self._sign = resolve_sign(self._sign_requested, self._topology, solid)
         self._vertex_count, self._face_count = len(v), len(f)
         self._frame = 0
