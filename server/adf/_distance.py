@@ -55,16 +55,18 @@ _OUT_NORMAL = wp.constant(OUT_NORMAL)
 _OUT_FACE = wp.constant(OUT_FACE)
 
 # Threads per block of the corner searches and the corner signs (each thread walks the BVH with a stack
-# of its own); `badf bench engine --kernels --block-sweep` times the choices. On the bunny at depth 7 (H100,
-# 2026-11-21) the searches took 1.78 ms at 128 against 1.91 ms at 256; the signs were alike (1.12 ms).
-SEARCH_BLOCK_DIM = 128
-SIGN_BLOCK_DIM = 128
-
-# Registers per thread of the corner-sign kernels. `--register-sweep` on the H100 (bunny, depth 7,
-# winding numbers, 2026-11-22): 46 registers by the compiler's choice took 0.99 ms, capped at 40 0.91 ms
-# (more warps per SM hide more of each visit's load latency), at 32 1.05 ms (spills). The corner searches
-# gained nothing from a cap (85 registers: 1.78 ms; 64: 1.78; 48: 1.89), so they have none.
-SIGN_MAX_REGISTERS = 40
+# of its own), and registers per thread. `badf bench engine --kernels --block-sweep --register-sweep` times
+# the choices. With the winding numbers running beside the searches, the two kernels share the SMs, and
+# what counts is the distance stage. On the bunny at depth 7 (H100, 2026-11-22, two runs at 04:57 and
+# 05:12 UTC, after the searches' cheaper triangle test) the stage took:
+#   - 1.76 and 1.67 ms at 64 threads per block, against 1.93 and 1.82 at 128 (and 1.81, 1.73 at 32);
+#   - 1.70 and 1.57 ms with the searches capped at 64 registers (84 by the compiler's choice: 1.89, 1.82);
+#   - 1.73 and 1.63 ms with the signs capped at 48 (they then use 46), against 1.94 and 1.78 at 40.
+# Alone (before the second stream) the signs had been fastest at 40 and the searches indifferent to a cap.
+SEARCH_BLOCK_DIM = 64
+SIGN_BLOCK_DIM = 64
+SEARCH_MAX_REGISTERS = 64
+SIGN_MAX_REGISTERS = 48
 
 # Seeds for the corner searches.
 SEED_SPATIAL = 0
@@ -491,7 +493,7 @@ def _write_answer(i: int, best: int, best_sq: float, seed: int, band: float, dis
         nearest[i] = -1 - seed
 
 
-@wp.kernel(enable_backward=False)
+@wp.kernel(enable_backward=False, module="unique", cuda_max_registers=SEARCH_MAX_REGISTERS, module_options=EXACT_ROUNDING)
 def corner_searches(
     corner_keys: wp.array(dtype=wp.int64),
     count: wp.array(dtype=wp.int32),
