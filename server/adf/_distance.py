@@ -68,10 +68,6 @@ SIGN_BLOCK_DIM = 64
 SEARCH_MAX_REGISTERS = 64
 SIGN_MAX_REGISTERS = 48
 
-# Seeds for the corner searches.
-SEED_SPATIAL = 0
-SEED_COHERENT = 1
-
 
 class SearchSplit:
     """How corner searches that run long are shared out (see CornerField.compute).
