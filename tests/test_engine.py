@@ -597,7 +597,7 @@ def test_fields_at_any_power_of_two_scale_equal_the_unit_field_scaled_to_the_bit
             assert np.allclose(got.closest_point, expected.closest_point * scale, rtol=0, atol=1e-6 * scale)
 
 
-@pytest.mark.parametrize("scale", [1e-38, 1e-7, 1e7, 1e15])
+@pytest.mark.parametrize("scale", [1e-40, 1e-38, 1e-7, 1e7, 1e15])
 def test_tiny_and_huge_meshes_match_the_oracle(device, scale):
     """Non-power-of-two scales against the float64 oracle: distances within the usual bound relative to the
     size, and signs right (the unit sphere and a tetrahedron at its corners)."""
@@ -665,3 +665,27 @@ def test_a_band_below_what_float32_resolves_is_refused(device):
     for bad in (True, "0.5"):
         with pytest.raises(InvalidInputError, match="band must be"):
             DistanceField(vertices, faces, depth=3, band=bad, device=device)
+
+
+def test_a_mesh_smaller_than_float32s_scale_answers_in_float32_and_float64_alike(device):
+    """Below about 1e-38 the domain's scale (a power of two near 1 / side) is beyond float32's range, so
+    float32 frames and points are brought to local coordinates on the host in float64, not on the device;
+    answers, slices and corner samples come back in world units however small."""
+    vertices, faces = meshes.load("sphere")
+    vertices = vertices.astype(np.float64) * 1e-40
+    rng = np.random.default_rng(11)
+    fields = {dtype: DistanceField(vertices.astype(dtype), faces, depth=4, device=device)
+              for dtype in (np.float64, np.float32)}
+    points = query_points(fields[np.float64], vertices, faces, rng, count=90)
+    truth = oracle.nearest(points, vertices, faces)
+    diag = oracle.bbox_diagonal(vertices)
+    for dtype, field in fields.items():
+        field.update(vertices.astype(dtype))
+        result = field.query(points.astype(dtype), mode="exact", outputs=ALL_OUTPUTS)
+        # float32 holds these distances as subnormals, to 1.4e-45
+        allowed = tol.EXACT_DISTANCE * diag + 1e-6 * truth.distance + 2e-45
+        assert np.all(np.abs(np.abs(result.distance) - truth.distance) <= allowed), dtype
+        _, values, _ = field.corner_samples()
+        assert np.all(np.isfinite(values)) and np.abs(values).max() > 0.0
+        cut = field.slice("z", 0.0, resolution=8)
+        assert np.all(np.abs(cut.cell_lower) <= 2e-40) and np.any(cut.cell_upper != 0.0)

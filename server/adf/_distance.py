@@ -491,7 +491,8 @@ def _write_answer(i: int, best: int, best_sq: float, seed: int, band: float, dis
         nearest[i] = -1 - seed
 
 
-@wp.kernel(enable_backward=False, module="unique", cuda_max_registers=SEARCH_MAX_REGISTERS, module_options=EXACT_ROUNDING)
+@wp.kernel(enable_backward=False, module="unique", cuda_max_registers=SEARCH_MAX_REGISTERS,
+           module_options=EXACT_ROUNDING)
 def corner_searches(
     corner_keys: wp.array(dtype=wp.int64),
     count: wp.array(dtype=wp.int32),

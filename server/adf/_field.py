@@ -133,7 +133,16 @@ class _Domain:
 
     def to_local(self, points: np.ndarray) -> np.ndarray:
         """Local float32 coordinates of world points, recentred in their own precision (float64 stays exact)."""
-        return np.ascontiguousarray((points - self.centre.astype(points.dtype)) * self.scale, dtype=np.float32)
+        offsets = points - self.centre.astype(points.dtype)
+        if not self.scale_fits_float32:
+            offsets = offsets.astype(np.float64)  # numpy would round the scale to float32 (inf)
+        return np.ascontiguousarray(offsets * self.scale, dtype=np.float32)
+
+    @property
+    def scale_fits_float32(self) -> bool:
+        """Whether the scale and its inverse are float32 numbers, so float32 arithmetic (numpy's, the device's)
+        can apply it. Not for a mesh smaller than about 1e-38 (scale above 2^127)."""
+        return _float32_holds(self.scale) and _float32_holds(1.0 / self.scale)
 
     @property
     def local_side(self) -> float:
@@ -273,8 +282,9 @@ class DistanceField:
             self._counters.domain_moves += 1
         # float32 frames are recentred on the device (the same float32 subtraction, without numpy's slow
         # (N, 3) broadcast); float64 ones on the host in float64, which keeps the precision far from the origin
-        self._apply(v if v.dtype == np.float32 else self._domain.to_local(v),
-                    float(np.max(hi - lo)) * self._domain.scale, domain_moved=moved, recentre=v.dtype == np.float32)
+        recentre = v.dtype == np.float32 and self._domain.scale_fits_float32
+        self._apply(v if recentre else self._domain.to_local(v), float(np.max(hi - lo)) * self._domain.scale,
+                    domain_moved=moved, recentre=recentre)
         self._frame += 1
         self._counters.updates += 1
         return self._frame
@@ -311,7 +321,7 @@ class DistanceField:
         band = domain.local_band(self._band)
         # float32 points are recentred on the device (the same float32 arithmetic); float64 ones on the host
         # in float64, which keeps the precision of points far from the origin
-        on_device = p.dtype == np.float32
+        on_device = p.dtype == np.float32 and domain.scale_fits_float32
         far, beyond = _pull_far_points(p, domain)
         if far is not None:
             p, on_device = far, False  # already local
@@ -323,17 +333,17 @@ class DistanceField:
                              exact=mode == "exact", outputs=bits, octree=tree,
                              corner_value=self._corners.value, corner_leaf=self._corners.leaf, bvh=bvh, sign=sign,
                              side=domain.local_side, band=band, results=arrays, start=start)
-        # back to world units: dividing by a power of two is exact (in float64: the scale itself may exceed float32)
         if "distance" in arrays:
             distance = arrays["distance"]
-            distance[:] = distance / domain.scale
+            _to_world_units(distance, domain.scale)
             if beyond is not None:
                 rows, extra = beyond
                 moved = distance[rows] + extra
                 distance[rows] = moved if self._band is None else np.minimum(moved, self._band)
         if "closest_point" in arrays:
             closest = arrays["closest_point"]
-            closest[:] = closest / domain.scale + domain.centre
+            _to_world_units(closest, domain.scale)
+            closest += domain.centre.astype(np.float32)
             if self._band is not None and "face" in arrays:
                 closest[arrays["face"] < 0] = 0.0
         for name, arr in arrays.items():
@@ -373,11 +383,12 @@ class DistanceField:
                 o.node_keys, o.child_mask, o.internal_count, self._depth, axis_index,
                 float((position - centre[axis_index]) * self._domain.scale), self._domain.local_side, max_level,
             )
-        to_world = 1.0 / self._domain.scale
+        for corners in (lower, upper):
+            _to_world_units(corners, self._domain.scale)
+            corners += centre.astype(np.float32)
         return Slice(axis=AXES[axis_index], position=position, distance=distance, u_range=u_range, v_range=v_range,
-                     cell_lower=(lower * to_world + centre).astype(np.float32),
-                     cell_upper=(upper * to_world + centre).astype(np.float32), cell_level=level,
-                     cell_is_leaf=leaf, cell_is_empty=empty, frame=self._frame)
+                     cell_lower=lower, cell_upper=upper, cell_level=level, cell_is_leaf=leaf, cell_is_empty=empty,
+                     frame=self._frame)
 
     @property
     def frame(self) -> int:
@@ -606,7 +617,8 @@ class DistanceField:
         cell = self._domain.side / (1 << self._depth)
         positions = self._domain.centre + (-self._domain.side / 2.0 + lattice * cell)
         n = self._octree.corner_count
-        values = self._corners.value.numpy()[:n] / self._domain.scale  # a copy (on the CPU, numpy() is a view)
+        values = self._corners.value.numpy()[:n].copy()  # on the CPU, numpy() is a view of the buffer
+        _to_world_units(values, self._domain.scale)
         faces = self._bvh.leaf_faces()[self._corners.leaf.numpy()[:n]]
         return positions, values, faces
 
@@ -622,6 +634,21 @@ class DistanceField:
 def _recentre(frame: wp.array(dtype=wp.vec3), centre: wp.vec3, scale: float, local: wp.array(dtype=wp.vec3)):
     i = wp.tid()
     local[i] = (frame[i] - centre) * scale
+
+
+def _to_world_units(local: np.ndarray, scale: float) -> None:
+    """Divide float32 lengths or offsets by the domain's scale, in place. The scale is a power of two, so the
+    result is exact (rounded once where it is subnormal). numpy multiplies float32 by a Python float in
+    float32, so a scale float32 cannot hold goes through float64."""
+    inverse = 1.0 / scale
+    if _float32_holds(inverse):
+        local *= np.float32(inverse)
+    else:
+        local[...] = local.astype(np.float64) * inverse
+
+
+def _float32_holds(power_of_two: float) -> bool:
+    return float(np.finfo(np.float32).tiny) <= power_of_two <= 2.0**127
 
 
 def _pull_far_points(points: np.ndarray, domain: _Domain):
