@@ -153,8 +153,7 @@ class CornerField:
         self.value = b.ensure("corner.value", capacity, wp.float32)
         self.leaf = b.ensure("corner.leaf", capacity, wp.int32)
         use_previous = coherent and self._previous_capacity > 0
-        centre, scale = domain.centre, domain.scale
-        side = domain.side * scale
+        centre, scale, side, origin = domain.centre, domain.scale, domain.local_side, domain.origin
         band = domain.local_band(band)
         cell = side / float(1 << depth)
         previous_origin = wp.vec3(0.0, 0.0, 0.0)
@@ -164,8 +163,6 @@ class CornerField:
             shift = ((self._previous_centre - centre) * scale - self._previous_side * scale / 2.0).astype(np.float32)
             previous_origin = wp.vec3(*shift)
             previous_cell = self._previous_side * scale / float(1 << depth)
-        half = side / 2.0
-        origin = wp.vec3(-half, -half, -half)
         split = self.planned_split(expected_count, bvh.internal_count)
         self._last_split = split
         splitting = split.budget > 0
