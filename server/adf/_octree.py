@@ -4,8 +4,11 @@ Stages (a measuring build reads one count back after each; a planned one reads n
 1. Surface cells at the finest level: every cell a triangle overlaps ("surface", the default), or the cell
    holding its centroid ("centroid", the paper's rule), grown by `halo` cells in every direction (default 1:
    then any point within one finest cell of the surface is interpolated in a finest cell, whose corners
-   are exact, rather than in a large empty cell across a coarse cell boundary). A hash set keeps each
-   cell once; the distinct cells are sorted by Morton code.
+   are exact, rather than in a large empty cell across a coarse cell boundary). The halo is found in the
+   same pass: the (2 halo + 1)^3 cells around a cell together make one cube, which a triangle overlaps
+   exactly when it overlaps one of them, so a cell is kept when its cube grown by `halo` cells overlaps the
+   triangle (or, by the centroid rule, when it lies within `halo` cells of the centroid's). A hash set
+   keeps each cell once; the distinct cells are sorted by Morton code.
 2. Karras's radix tree over those cell keys; the paper's Algorithm 1 turns each tree edge whose common
    prefix crosses a multiple of 3 bits into the octree nodes between the two ends, so every node is made
    exactly once and in parallel. The nodes are sorted by (level, Morton code).
@@ -67,10 +70,9 @@ class Octree:
         self.buffers = buffers
         self.device = buffers.device
         self.host = HostReadback(self.device)
-        # the corner set reuses the surface set's buffers: the surface cells are dead by the corner stage
-        self.surface_set = HashSet("oct.set_a", buffers, self.host, label="surface")
-        self.halo_set = HashSet("oct.set_b", buffers, self.host, label="halo")
-        self.corner_set = HashSet("oct.set_a", buffers, self.host, label="corners")
+        # the corner set reuses the cell set's buffers: the cells are dead by the corner stage
+        self.cell_set = HashSet("oct.set", buffers, self.host, label="cells")
+        self.corner_set = HashSet("oct.set", buffers, self.host, label="corners")
         self.surface_area = 0.0  # set by the owner: sizes the first frame's surface-cell set
         # planned capacities (set by a measuring build)
         self.node_capacity = 0
@@ -103,25 +105,18 @@ class Octree:
             self._corners(measure)
 
     @property
-    def cell_set(self) -> HashSet:
-        return self.halo_set if self.halo > 0 else self.surface_set
-
-    @property
     def corner_capacity(self) -> int:
         return self.corner_set.list_capacity
 
     def report(self) -> list[tuple[wp.array, int, int]]:
         """(device count, index, capacity) of each size a planned build must fit, for the frame's report."""
-        out = [(self.surface_set.view.count, 0, self.surface_set.list_capacity)]
-        if self.halo > 0:
-            out.append((self.halo_set.view.count, 0, self.halo_set.list_capacity))
-        out += [(self.totals, 0, self.node_capacity), (self.totals, 1, self.internal_capacity),
+        return [(self.cell_set.view.count, 0, self.cell_set.list_capacity),
+                (self.totals, 0, self.node_capacity), (self.totals, 1, self.internal_capacity),
                 (self.corner_set.view.count, 0, self.corner_set.list_capacity)]
-        return out
 
     def take_counts(self, counts: list[int], level_counts: np.ndarray) -> None:
         """Record the counts a planned build found (in the order of `report`)."""
-        self.surface_cell_count = counts[1] if self.halo > 0 else counts[0]
+        self.surface_cell_count = counts[0]
         self.node_count, self.internal_count, self.corner_count = counts[-3], counts[-2], counts[-1]
         self.level_counts = level_counts.astype(np.int64)
 
@@ -137,34 +132,26 @@ class Octree:
 
     # -- stage 1: surface cells -------------------------------------------------------------------------
     def _surface_cells(self, vertices, faces, face_count: int, origin: wp.vec3, side: float, measure: bool) -> wp.array:
-        d = self.depth
+        d, halo = self.depth, self.halo
         resolution = 1 << d
         cell = side / resolution
         shift = KEY_TOP_BIT - 3 * d
         if self.refine == "surface":
-            # a surface of area A crosses about 1.5 A / h^2 cells of size h
-            kernel, expected = _insert_surface_cells, int(2.0 * self.surface_area / (cell * cell)) + 64
+            # a surface of area A crosses about 1.5 A / h^2 cells of size h; a halo thickens that sheet of
+            # cells one thick to about 2 halo + 1
+            kernel, expected = _insert_surface_cells, int(2.0 * self.surface_area / (cell * cell)) * (2 * halo + 1) + 64
         else:
-            kernel, expected = _insert_centroid_cells, face_count
-        surface_count = self.surface_set.insert_all(
+            kernel, expected = _insert_centroid_cells, face_count * (2 * halo + 1)
+        # the first try's table is kept for later frames: an estimate past the grid's cells would only waste it
+        expected = min(expected, resolution**3)
+        self.cell_set.insert_all(
             expected,
-            lambda table: wp.launch(kernel, dim=face_count, inputs=[vertices, faces, origin, cell, resolution, shift, table],
-                                    device=self.device),
+            lambda table: wp.launch(kernel, dim=face_count, inputs=[vertices, faces, origin, cell, resolution, halo, shift,
+                                                                    table], device=self.device),
             measure=measure,
         )
-        if self.halo > 0:
-            surface = self.surface_set.view
-            width = 2 * self.halo + 1
-            grown = surface.list_capacity * width**3
-            self.halo_set.insert_all(
-                3 * (surface_count or 0),  # a sheet of cells one thick grows to about three (None: planned)
-                lambda table: wp.launch(_insert_halo_cells, dim=grown, inputs=[surface, self.halo, resolution, shift, table],
-                                        device=self.device),
-                measure=measure,
-            )
-        cells = self.cell_set
-        keys, _ = cells.sort_listed(shift, KEY_TOP_BIT)
-        self.cell_count = cells.view.count
+        keys, _ = self.cell_set.sort_listed(shift, KEY_TOP_BIT)
+        self.cell_count = self.cell_set.view.count
         return keys
 
     # -- stage 2: Algorithm 1 over the radix tree of the cells ---------------------------------------------
@@ -387,10 +374,12 @@ def _insert_surface_cells(
     origin: wp.vec3,
     cell: float,
     resolution: int,
+    halo: int,
     shift: int,
     table: HashSetView,
 ):
-    # every finest cell the triangle overlaps (separating axes), tested over the triangle's bounding box
+    # every finest cell within `halo` cells of one the triangle overlaps: the cells whose cube, grown by
+    # `halo` cells on every side, the triangle overlaps (separating axes), over its grown bounding box
     f = wp.tid()
     tri = faces[f]
     a = vertices[tri[0]]
@@ -400,10 +389,11 @@ def _insert_surface_cells(
     inv_cell = 1.0 / cell
     lo = quantize(wp.min(wp.min(a, b), c) - pad, origin, inv_cell, resolution)
     hi = quantize(wp.max(wp.max(a, b), c) + pad, origin, inv_cell, resolution)
-    half = 0.5 * cell + _SLACK * cell
-    for x in range(lo[0], hi[0] + 1):
-        for y in range(lo[1], hi[1] + 1):
-            for z in range(lo[2], hi[2] + 1):
+    top = resolution - 1
+    half = (0.5 + float(halo)) * cell + _SLACK * cell
+    for x in range(wp.max(lo[0] - halo, 0), wp.min(hi[0] + halo, top) + 1):
+        for y in range(wp.max(lo[1] - halo, 0), wp.min(hi[1] + halo, top) + 1):
+            for z in range(wp.max(lo[2] - halo, 0), wp.min(hi[2] + halo, top) + 1):
                 centre = origin + wp.vec3(float(x) + 0.5, float(y) + 0.5, float(z) + 0.5) * cell
                 if triangle_overlaps_cube(a, b, c, centre, half):
                     set_insert(table, morton3(x, y, z) << wp.int64(shift))
@@ -416,37 +406,20 @@ def _insert_centroid_cells(
     origin: wp.vec3,
     cell: float,
     resolution: int,
+    halo: int,
     shift: int,
     table: HashSetView,
 ):
+    # the cell holding the triangle's centroid (the paper's rule) and those within `halo` cells of it
     f = wp.tid()
     tri = faces[f]
     centroid = (vertices[tri[0]] + vertices[tri[1]] + vertices[tri[2]]) / 3.0
     g = quantize(centroid, origin, 1.0 / cell, resolution)
-    set_insert(table, morton3(g[0], g[1], g[2]) << wp.int64(shift))
-
-
-@wp.kernel(enable_backward=False)
-def _insert_halo_cells(
-    cells: HashSetView,
-    halo: int,
-    resolution: int,
-    shift: int,
-    table: HashSetView,
-):
-    # cell i // width^3 and its neighbour i % width^3 within `halo` cells (clamped into the grid)
-    i = wp.tid()
-    width = 2 * halo + 1
-    volume = width * width * width
-    if i // volume >= listed_count(cells):
-        return
-    cell = morton3_decode(cells.listed_keys[i // volume] >> wp.int64(shift))
-    r = i % volume
     top = resolution - 1
-    x = wp.clamp(cell[0] + r // (width * width) - halo, 0, top)
-    y = wp.clamp(cell[1] + (r // width) % width - halo, 0, top)
-    z = wp.clamp(cell[2] + r % width - halo, 0, top)
-    set_insert(table, morton3(x, y, z) << wp.int64(shift))
+    for x in range(wp.max(g[0] - halo, 0), wp.min(g[0] + halo, top) + 1):
+        for y in range(wp.max(g[1] - halo, 0), wp.min(g[1] + halo, top) + 1):
+            for z in range(wp.max(g[2] - halo, 0), wp.min(g[2] + halo, top) + 1):
+                set_insert(table, morton3(x, y, z) << wp.int64(shift))
 
 
 @wp.kernel(enable_backward=False)
