@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-# A buffer that must grow gets this much headroom, so a slowly growing octree does not reallocate each frame.
+# A buffer asked to grow with headroom gets this much, so sizes that creep up do not reallocate each call.
 _GROWTH = 1.5
 
 
@@ -20,11 +20,13 @@ class DeviceBuffers:
         self._arrays[name] = arr
         return arr
 
-    def ensure(self, name: str, count: int, dtype) -> wp.array:
-        """The array of that name if it holds `count` elements, else a larger one (contents not kept)."""
+    def ensure(self, name: str, count: int, dtype, *, headroom: bool = False) -> wp.array:
+        """The array of that name if it holds `count` elements, else a new one (contents not kept): of
+        exactly `count` elements for sizes planned with their own headroom (`with_headroom`), or with
+        `headroom` of at least half again the old size, for sizes that creep up call by call."""
         arr = self._arrays.get(name)
         if arr is None or arr.shape[0] < count:
-            grown = count if arr is None else max(count, int(arr.shape[0] * _GROWTH))
+            grown = count if arr is None or not headroom else max(count, int(arr.shape[0] * _GROWTH))
             arr = wp.empty(max(grown, 1), dtype=dtype, device=self.device)
             self._arrays[name] = arr
         return arr
@@ -58,6 +60,42 @@ def _role(name: str) -> str:
     if name.startswith("query."):
         return "queries"
     return "scratch"
+
+
+class SharedScratch:
+    """One allocation that the stages of a frame lay their short-lived arrays over, one stage after another.
+
+    `take` lays the arrays it is asked for out from the front, so they overlap what the previous `take`
+    returned: the caller takes a stage's arrays only once no queued work will read the last stage's (all
+    run in order on one stream). The allocation is one of the object's named buffers (counted as scratch);
+    it grows when a stage needs more and never shrinks. Growing waits for the device first, so no kernel
+    still queued reads the old allocation when it is freed: a measured frame or the first planned frame
+    of new sizes may grow it, never a frame being captured as a graph, which repeats an eager one.
+    """
+
+    _ALIGN = 256  # bytes; every array starts on a multiple, as the allocator's own do
+
+    def __init__(self, name: str, buffers: DeviceBuffers):
+        self.name = name
+        self.buffers = buffers
+        self.device = buffers.device
+        self._backing: wp.array | None = None
+
+    def take(self, *layout: tuple[int, type]) -> list[wp.array]:
+        """Arrays of (count, dtype) each (at least one element), contents undefined, valid until the next take."""
+        offsets, end = [], 0
+        for count, dtype in layout:
+            offsets.append(end)
+            end += -(-max(int(count), 1) * wp.types.type_size_in_bytes(dtype) // self._ALIGN) * self._ALIGN
+        if self._backing is None or self._backing.shape[0] < end:
+            if self._backing is not None:
+                if self.device.is_cuda and self.device.is_capturing:
+                    raise RuntimeError(f"{self.name}: a stage outgrew its scratch while a graph was captured")
+                wp.synchronize_device(self.device)
+            self._backing = self.buffers.ensure(self.name, end, wp.uint8)
+        base = self._backing.ptr
+        return [wp.array(ptr=base + offset, dtype=dtype, shape=(max(int(count), 1),), device=self.device)
+                for offset, (count, dtype) in zip(offsets, layout)]
 
 
 class SideStream:

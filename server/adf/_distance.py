@@ -327,11 +327,11 @@ class PointQuery:
         (side and band in local units too); copy the asked outputs, in local units, into results[...][start:]."""
         b = self.buffers
         n = len(points)
-        distance = b.ensure("query.distance", n if outputs & OUT_DISTANCE else 1, wp.float32)
-        closest = b.ensure("query.closest", n if outputs & OUT_CLOSEST else 1, wp.vec3)
-        normal = b.ensure("query.normal", n if outputs & OUT_NORMAL else 1, wp.vec3)
-        face = b.ensure("query.face", n if outputs & OUT_FACE else 1, wp.int32)
-        device_points = b.ensure("query.points", n, wp.vec3)
+        distance = b.ensure("query.distance", n if outputs & OUT_DISTANCE else 1, wp.float32, headroom=True)
+        closest = b.ensure("query.closest", n if outputs & OUT_CLOSEST else 1, wp.vec3, headroom=True)
+        normal = b.ensure("query.normal", n if outputs & OUT_NORMAL else 1, wp.vec3, headroom=True)
+        face = b.ensure("query.face", n if outputs & OUT_FACE else 1, wp.int32, headroom=True)
+        device_points = b.ensure("query.points", n, wp.vec3, headroom=True)
         wp.copy(device_points, wp.array(points, dtype=wp.vec3, device="cpu", copy=False), count=n)
         wp.launch(
             query_kernel(sign.method),

@@ -2,7 +2,9 @@
 
 Open addressing with linear probing; a thread whose compare-and-swap claims an empty slot appends the key
 (and the slot) to a compact list with an atomic counter, so the distinct keys come out without sorting all
-the duplicates. The table is sized from an expected count at load at most 1/2.
+the duplicates. The table holds twice the expected count (load at most 1/2), and the list the expected
+count: sizes follow the count, not the next power of two, so the sorts and the radix tree that come after
+run over no more entries than they need.
 
 Two ways to run a pass (see `insert_all`): measuring, which reads the count back and, if more keys arrived
 than the list holds, grows the table and runs the pass again; or planned, which reads nothing, so a frame
@@ -18,7 +20,7 @@ from collections.abc import Callable
 
 import warp as wp
 
-from badf.server.adf._buffers import DeviceBuffers
+from badf.server.adf._buffers import DeviceBuffers, SharedScratch
 
 EMPTY = wp.constant(wp.int64(-1))
 UNLISTED = (1 << 62) - 1  # every bit a sorted key range can use (keys stay below 2^62) is set
@@ -28,7 +30,7 @@ _MIN_CAPACITY = 1024
 @wp.struct
 class HashSetView:
     keys: wp.array(dtype=wp.int64)  # (capacity,) table, EMPTY where free
-    mask: int  # capacity - 1 (capacity is a power of two)
+    capacity: int
     listed_keys: wp.array(dtype=wp.int64)  # distinct keys in arrival order
     listed_slots: wp.array(dtype=wp.int32)  # their table slots
     list_capacity: int
@@ -53,8 +55,8 @@ def listed_count(table: HashSetView) -> int:
 @wp.func
 def set_insert(table: HashSetView, key: wp.int64) -> int:
     """Insert key; returns its table slot, or -1 when the table is full."""
-    slot = int(_hash(key) & wp.uint64(table.mask))
-    for _probe in range(table.mask + 1):
+    slot = int(_hash(key) % wp.uint64(table.capacity))
+    for _probe in range(table.capacity):
         previous = wp.atomic_cas(table.keys, slot, EMPTY, key)
         if previous == EMPTY:
             index = wp.atomic_add(table.count, 0, 1)
@@ -64,17 +66,21 @@ def set_insert(table: HashSetView, key: wp.int64) -> int:
             return slot
         if previous == key:
             return slot
-        slot = (slot + 1) & table.mask
+        slot += 1
+        if slot == table.capacity:
+            slot = 0
     return -1
 
 
 class HashSet:
     """Device buffers of one hash set, reused from frame to frame."""
 
-    def __init__(self, name: str, buffers: DeviceBuffers, host_counts, *, label: str):
-        """`name` names the table and list buffers, which sets alive at different times may share; `label`
-        names this set's count, which is read at the end of the frame."""
+    def __init__(self, name: str, buffers: DeviceBuffers, scratch: SharedScratch, host_counts, *, label: str):
+        """`name` names the listed keys' buffer, which sets alive at different times may share; `label`
+        names this set's count, which is read at the end of the frame. The table and the listed slots,
+        which live only while keys go in and are sorted, are taken from `scratch`."""
         self.name = name
+        self.scratch = scratch
         self.label = label
         self.buffers = buffers
         self.device = buffers.device
@@ -104,19 +110,16 @@ class HashSet:
             expected = 2 * max(count, expected)
 
     def _reset(self, expected: int) -> HashSetView:
-        capacity = _MIN_CAPACITY
-        while capacity < 2 * max(expected, 1):
-            capacity *= 2
+        capacity = max(2 * expected, _MIN_CAPACITY)
         b = self.buffers
         view = HashSetView()
-        view.keys = b.ensure(self.name + ".table", capacity, wp.int64)
-        view.keys.fill_(-1)
-        view.mask = capacity - 1
-        view.list_capacity = capacity // 2
         # listed keys and slots are sorted afterwards: radix_sort_pairs needs twice the room
+        view.keys, view.listed_slots = self.scratch.take((capacity, wp.int64), (capacity, wp.int32))
+        view.keys.fill_(-1)
+        view.capacity = capacity
+        view.list_capacity = capacity // 2
         view.listed_keys = b.ensure(self.name + ".keys", capacity, wp.int64)
         view.listed_keys.fill_(UNLISTED)
-        view.listed_slots = b.ensure(self.name + ".slots", capacity, wp.int32)
         view.count = b.ensure(f"{self.name}.count.{self.label}", 1, wp.int32)
         view.count.zero_()
         self._view = view
@@ -129,6 +132,12 @@ class HashSet:
     @property
     def list_capacity(self) -> int:
         return self._view.list_capacity
+
+    def spent_table(self) -> wp.array:
+        """The table's memory as (capacity,) int32, for a caller done inserting (the table is not read
+        again, and the listed keys and slots are elsewhere)."""
+        table = self._view.keys
+        return wp.array(ptr=table.ptr, dtype=wp.int32, shape=table.shape, device=self.device)
 
     def sort_listed(self, begin_bit: int, end_bit: int) -> tuple[wp.array, wp.array]:
         """Sort the whole list (with the slots): the listed keys in order, then UNLISTED; (keys, slots)."""

@@ -28,7 +28,7 @@ from typing import Literal
 import numpy as np
 import warp as wp
 
-from badf.server.adf._buffers import DeviceBuffers, HostReadback
+from badf.server.adf._buffers import DeviceBuffers, HostReadback, SharedScratch
 from badf.server.adf._bvh import link_radix_tree
 from badf.server.adf._hashset import UNLISTED, HashSet, HashSetView, listed_count, set_insert, with_headroom
 from badf.server.adf._geometry import KEY_TOP_BIT, morton3, morton3_decode, popcount, quantize, triangle_overlaps_cube
@@ -70,9 +70,11 @@ class Octree:
         self.buffers = buffers
         self.device = buffers.device
         self.host = HostReadback(self.device)
-        # the corner set reuses the cell set's buffers: the cells are dead by the corner stage
-        self.cell_set = HashSet("oct.set", buffers, self.host, label="cells")
-        self.corner_set = HashSet("oct.set", buffers, self.host, label="corners")
+        # Arrays that live within one stage (hash tables, the radix tree, scans) share one allocation, and
+        # the corner set's listed keys reuse the cells': the cells are dead by the corner stage.
+        self.scratch = SharedScratch("oct.scratch", buffers)
+        self.cell_set = HashSet("oct.set", buffers, self.scratch, self.host, label="cells")
+        self.corner_set = HashSet("oct.set", buffers, self.scratch, self.host, label="corners")
         self.surface_area = 0.0  # set by the owner: sizes the first frame's surface-cell set
         # planned capacities (set by a measuring build)
         self.node_capacity = 0
@@ -136,12 +138,13 @@ class Octree:
         resolution = 1 << d
         cell = side / resolution
         shift = KEY_TOP_BIT - 3 * d
+        # a surface of area A crosses about 1.5 A / h^2 cells of size h (the centroid rule keeps no more of them,
+        # and at most one per triangle); a halo thickens that sheet of cells one thick to about 2 halo + 1
+        sheet = int(2.0 * self.surface_area / (cell * cell)) + 64
         if self.refine == "surface":
-            # a surface of area A crosses about 1.5 A / h^2 cells of size h; a halo thickens that sheet of
-            # cells one thick to about 2 halo + 1
-            kernel, expected = _insert_surface_cells, int(2.0 * self.surface_area / (cell * cell)) * (2 * halo + 1) + 64
+            kernel, expected = _insert_surface_cells, sheet * (2 * halo + 1)
         else:
-            kernel, expected = _insert_centroid_cells, face_count * (2 * halo + 1)
+            kernel, expected = _insert_centroid_cells, min(sheet, face_count) * (2 * halo + 1)
         # the first try's table is kept for later frames: an estimate past the grid's cells would only waste it
         expected = min(expected, resolution**3)
         self.cell_set.insert_all(
@@ -159,15 +162,12 @@ class Octree:
         b, d = self.buffers, self.depth
         capacity = self.cell_set.list_capacity
         tree_nodes = 2 * capacity - 1
-        parent = b.ensure("oct.tree.parent", tree_nodes, wp.int32)
-        left = b.ensure("oct.tree.left", capacity, wp.int32)
-        right = b.ensure("oct.tree.right", capacity, wp.int32)
-        first = b.ensure("oct.tree.first", capacity, wp.int32)
-        prefix = b.ensure("oct.tree.prefix", capacity, wp.int32)
+        # the cell set's table and slots are dead: the radix tree and its edges' counts take their place
+        parent, left, right, first, prefix, counts, offsets = self.scratch.take(
+            (tree_nodes, wp.int32), (capacity, wp.int32), (capacity, wp.int32), (capacity, wp.int32),
+            (capacity, wp.int32), (tree_nodes, wp.int32), (tree_nodes, wp.int32))
         link_radix_tree(cell_keys, self.cell_count, capacity, parent, left, right, first, prefix)
 
-        counts = b.ensure("oct.edge_counts", tree_nodes, wp.int32)
-        offsets = b.ensure("oct.edge_offsets", tree_nodes, wp.int32)
         level_counts = b.ensure("oct.level_counts", d + 1, wp.int32)
         level_counts.zero_()
         self.level_counts_array = level_counts
@@ -182,20 +182,21 @@ class Octree:
             self.node_capacity = with_headroom(self.node_count)
             self.internal_capacity = with_headroom(self.internal_count)
         node_keys = b.ensure("oct.node_keys", 2 * self.node_capacity, wp.int64)
-        scratch = b.ensure("oct.node_values", 2 * self.node_capacity, wp.int32)
         node_keys.fill_(UNLISTED)
         wp.launch(_fill_octree_nodes, dim=tree_nodes,
                   inputs=[cell_keys, parent, prefix, first, self.cell_count, capacity, d, offsets, self.node_capacity],
                   outputs=[node_keys], device=self.device)
-        wp.utils.radix_sort_pairs(node_keys, scratch, self.node_capacity, end_bit=LEVEL_SHIFT + 4)
+        # the sort's values are not used; the radix tree is dead by now, and the nodes hold no more
+        # entries than its edges
+        values = self.scratch.take((2 * self.node_capacity, wp.int32))[0]
+        wp.utils.radix_sort_pairs(node_keys, values, self.node_capacity, end_bit=LEVEL_SHIFT + 4)
         self.node_keys = node_keys
 
     # -- stage 3: child masks and first children ----------------------------------------------------------
     def _link_children(self) -> None:
         b = self.buffers
         nodes, internal = self.node_capacity, self.internal_capacity
-        flags = b.ensure("oct.first_child_flags", nodes, wp.int32)
-        scan = b.ensure("oct.first_child_scan", nodes, wp.int32)
+        flags, scan = self.scratch.take((nodes, wp.int32), (nodes, wp.int32))
         self.child_mask = b.ensure("oct.child_mask", internal, wp.int32)
         self.first_child = b.ensure("oct.first_child", internal, wp.int32)
         self.child_mask.zero_()
@@ -218,7 +219,7 @@ class Octree:
         )
         keys, slots = self.corner_set.sort_listed(0, 3 * (d + 1))
         table = self.corner_set.view
-        rank = b.ensure("oct.corner_rank", table.mask + 1, wp.int32)
+        rank = self.corner_set.spent_table()
         wp.launch(_rank_slots, dim=table.list_capacity, inputs=[slots, table], outputs=[rank], device=self.device)
         wp.launch(_slots_to_ranks, dim=candidates, inputs=[rank, self.totals], outputs=[self.corner_slot],
                   device=self.device)

@@ -75,10 +75,10 @@ class SliceCells:
         """(lower, upper) local corners, levels, leaf and empty flags of the cells crossing the plane."""
         b = self.buffers
         capacity = 8 * internal_count + 1
-        lower = b.ensure("slice.lower", capacity, wp.vec3)
-        upper = b.ensure("slice.upper", capacity, wp.vec3)
-        level = b.ensure("slice.level", capacity, wp.int32)
-        kind = b.ensure("slice.kind", capacity, wp.int32)
+        lower = b.ensure("slice.lower", capacity, wp.vec3, headroom=True)
+        upper = b.ensure("slice.upper", capacity, wp.vec3, headroom=True)
+        level = b.ensure("slice.level", capacity, wp.int32, headroom=True)
+        kind = b.ensure("slice.kind", capacity, wp.int32, headroom=True)
         count = b.ensure("slice.count", 1, wp.int32)
         count.zero_()
         wp.launch(

@@ -1,0 +1,67 @@
+"""The engine's device memory plumbing: the de-duplicating hash set and the scratch that stages share."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from badf.server.adf._buffers import DeviceBuffers, HostReadback, SharedScratch
+from badf.server.adf._hashset import UNLISTED, HashSet, HashSetView, set_insert
+
+
+@wp.kernel(enable_backward=False)
+def _insert_keys(keys: wp.array(dtype=wp.int64), table: HashSetView):
+    set_insert(table, keys[wp.tid()])
+
+
+@pytest.mark.parametrize("distinct,expected", [(1, 1), (700, 700), (5000, 1200), (20011, 3)])
+def test_hash_set_lists_every_distinct_key_once(device, distinct, expected):
+    # each key arrives 1 to 5 times in random order; an expected count below the distinct one makes the
+    # measuring pass try again with a larger table, whose size is no power of two
+    rng = np.random.default_rng(distinct)
+    unique = rng.choice(1 << 40, size=distinct, replace=False).astype(np.int64)
+    keys = rng.permutation(np.repeat(unique, rng.integers(1, 6, size=distinct)))
+    buffers = DeviceBuffers(wp.get_device(device))
+    table = HashSet("set", buffers, SharedScratch("scratch", buffers), HostReadback(buffers.device), label="t")
+    device_keys = wp.array(keys, dtype=wp.int64, device=device)
+    count = table.insert_all(expected, lambda view: wp.launch(_insert_keys, dim=len(keys), inputs=[device_keys, view],
+                                                               device=device), measure=True)
+    assert count == distinct
+    listed, _ = table.sort_listed(0, 62)
+    listed = listed.numpy()
+    np.testing.assert_array_equal(listed[:distinct], np.sort(unique))
+    assert np.all(listed[distinct : table.list_capacity] == UNLISTED)
+
+    # a planned pass over the same keys, in the table sized for them with headroom, lists them all again
+    assert table.planned > distinct
+    table.insert_all(0, lambda view: wp.launch(_insert_keys, dim=len(keys), inputs=[device_keys, view], device=device),
+                     measure=False)
+    assert int(table.view.count.numpy()[0]) == distinct
+    np.testing.assert_array_equal(np.sort(table.view.listed_keys.numpy()[:distinct]), np.sort(unique))
+
+
+def test_a_scratch_take_lays_its_arrays_apart_and_over_the_last_take(device):
+    buffers = DeviceBuffers(wp.get_device(device))
+    scratch = SharedScratch("scratch", buffers)
+    a, b, c = scratch.take((1000, wp.int64), (3, wp.int32), (10, wp.vec3))
+    spans = [(x.ptr, x.ptr + x.capacity) for x in (a, b, c)]
+    assert all((start - a.ptr) % 256 == 0 for start, _ in spans)  # from the allocation, itself aligned
+    assert all(spans[i][1] <= spans[i + 1][0] for i in range(2))  # in order, none overlapping
+    a.fill_(7)
+    b.fill_(-1)
+    c.fill_(wp.vec3(1.0, 2.0, 3.0))
+    assert np.all(a.numpy() == 7) and np.all(b.numpy() == -1) and np.all(c.numpy() == [1.0, 2.0, 3.0])
+    held = buffers.nbytes()
+    assert held >= spans[-1][1] - spans[0][0]
+
+    # the next stage starts at the front again, over the dead arrays, without allocating
+    (d,) = scratch.take((500, wp.int32))
+    assert d.ptr == a.ptr and buffers.nbytes() == held
+    # a stage that needs more grows the one allocation (counted once, as the buffers' scratch)
+    e, f = scratch.take((4000, wp.int64), (4000, wp.int64))
+    assert f.ptr + f.capacity - e.ptr > held
+    assert buffers.nbytes() == buffers.nbytes_by_role()["scratch"] >= 64000
+    e.fill_(3)
+    f.fill_(4)
+    assert np.all(e.numpy() == 3) and np.all(f.numpy() == 4)
