@@ -179,6 +179,45 @@ def measure_dense_baseline(vertices, faces, *, device: str, repeat: int, resolut
     }
 
 
+def measure_allocations(vertices, faces, *, device: str, depth: int, frames: int = 5) -> dict | None:
+    """Device memory the CUDA allocator holds for each side, counted by the allocator itself (Warp's
+    internal allocations, such as wp.Mesh's BVH or a sort's scratch, included): a DistanceField after a few
+    coherent frames, against the dense baseline's vertices, indices, wp.Mesh and 129^3 grid. None on the CPU
+    or without a memory pool, where the allocator keeps no such count."""
+    import gc
+
+    import warp as wp
+
+    from badf.server.adf import DistanceField
+
+    d = wp.get_device(device)
+    if not d.is_cuda or not wp.is_mempool_enabled(d):
+        return None
+
+    def in_use() -> int:
+        gc.collect()
+        wp.synchronize_device(d)
+        return int(wp.get_mempool_used_mem_current(d))
+
+    before = in_use()
+    field = DistanceField(vertices, faces, depth=depth, device=device)
+    for k in range(1, frames + 1):
+        field.update(deform(vertices, 0.02 * k))
+    field_allocated = in_use() - before
+    counted = field.stats()["device_bytes"]
+    del field
+
+    before = in_use()
+    points = wp.array(vertices, dtype=wp.vec3, device=device)
+    indices = wp.array(faces.reshape(-1), dtype=wp.int32, device=device)
+    mesh = wp.Mesh(points=points, indices=indices)
+    grid = wp.zeros(129**3, dtype=wp.float32, device=device)
+    baseline_allocated = in_use() - before
+    del mesh, grid, points, indices
+    return {"field_allocated_bytes": field_allocated, "field_counted_bytes": counted,
+            "dense_baseline_allocated_bytes": baseline_allocated}
+
+
 def measure_traversals(field, vertices, faces, *, device: str, repeat: int) -> dict:
     """Nearest-face search at the field's corners: this engine's BVH against Warp's wp.Mesh BVH
     (mesh_query_point_no_sign), each from no bound and from the bound of the corner's known nearest face
@@ -570,6 +609,7 @@ def run(args: argparse.Namespace) -> int:
         del field
     baseline = measure_dense_baseline(vertices, faces, device=device, repeat=repeat)
     report["dense_baseline"] = baseline
+    report["allocations"] = measure_allocations(vertices, faces, device=device, depth=args.depth)
     first = report["configurations"][0]
     print_table(
         f"engine on {report['device']}, {args.mesh} ({len(faces)} triangles), median of {repeat}",
@@ -587,6 +627,11 @@ def run(args: argparse.Namespace) -> int:
           f" adf vs exact max error {first['adf_vs_exact_max_error_diag']:.2e} diag")
     print(f"dense baseline ({baseline['resolution']}^3 grid, wp.Mesh + mesh_query_point_sign_normal): "
           f"build {baseline['build_ms']} ms, query {baseline['query_ms']} ms, grid {baseline['grid_bytes'] / 2**20:.2f} MiB")
+    if report["allocations"] is not None:
+        a = report["allocations"]
+        print(f"device memory held, by the allocator's count: the field {a['field_allocated_bytes'] / 2**20:.2f} MiB "
+              f"(its own count {a['field_counted_bytes'] / 2**20:.2f}); the dense baseline "
+              f"{a['dense_baseline_allocated_bytes'] / 2**20:.2f} MiB (wp.Mesh, its inputs and the grid)")
     if args.out:
         with open(args.out, "w") as handle:
             json.dump(report, handle, indent=2)
