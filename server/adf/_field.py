@@ -579,7 +579,7 @@ class DistanceField:
         """Everything a planned frame's launches take by value; a graph is replayed only for an equal key."""
         o, c = self._octree, self._corners
         return (
-            o.cell_set.planned, o.node_capacity, o.internal_capacity, o.corner_set.planned,
+            o.cell_set.planned, o.surface_planned, o.node_capacity, o.internal_capacity, o.corner_set.planned,
             tuple(self._domain.centre), self._domain.side, c.coherence_key(), (split.budget, split.levels, split.groups),
             c.far_cells_for(self._normals.code),
         )

@@ -4,11 +4,9 @@ Stages (a measuring build reads one count back after each; a planned one reads n
 1. Surface cells at the finest level: every cell a triangle overlaps ("surface", the default), or the cell
    holding its centroid ("centroid", the paper's rule), grown by `halo` cells in every direction (default 1:
    then any point within one finest cell of the surface is interpolated in a finest cell, whose corners
-   are exact, rather than in a large empty cell across a coarse cell boundary). The halo is found in the
-   same pass: the (2 halo + 1)^3 cells around a cell together make one cube, which a triangle overlaps
-   exactly when it overlaps one of them, so a cell is kept when its cube grown by `halo` cells overlaps the
-   triangle (or, by the centroid rule, when it lies within `halo` cells of the centroid's). A hash set
-   keeps each cell once; the distinct cells are sorted by Morton code.
+   are exact, rather than in a large empty cell across a coarse cell boundary). One hash set keeps each
+   cell once: a pass over the triangles lists the surface cells, and a pass over those adds their
+   neighbours to the same set. The distinct cells are sorted by Morton code.
 2. Karras's radix tree over those cell keys; the paper's Algorithm 1 turns each tree edge whose common
    prefix crosses a multiple of 3 bits into the octree nodes between the two ends, so every node is made
    exactly once and in parallel. The nodes are sorted by (level, Morton code).
@@ -74,6 +72,8 @@ class Octree:
         # the corner set's listed keys reuse the cells': the cells are dead by the corner stage.
         self.scratch = SharedScratch("oct.scratch", buffers)
         self.cell_set = HashSet("oct.set", buffers, self.scratch, self.host, label="cells")
+        self.surface_count = buffers.ensure("oct.surface_count", 1, wp.int32)  # cells listed before the halo's
+        self.surface_planned = 0  # the halo pass's threads: surface cells planned for (set by a measuring build)
         self.corner_set = HashSet("oct.set", buffers, self.scratch, self.host, label="corners")
         self.surface_area = 0.0  # set by the owner: sizes the first frame's surface-cell set
         # planned capacities (set by a measuring build)
@@ -138,6 +138,7 @@ class Octree:
         resolution = 1 << d
         cell = side / resolution
         shift = KEY_TOP_BIT - 3 * d
+        volume = (2 * halo + 1) ** 3
         # a surface of area A crosses about 1.5 A / h^2 cells of size h (the centroid rule keeps no more of them,
         # and at most one per triangle); a halo thickens that sheet of cells one thick to about 2 halo + 1
         sheet = int(2.0 * self.surface_area / (cell * cell)) + 64
@@ -147,12 +148,21 @@ class Octree:
             kernel, expected = _insert_centroid_cells, min(sheet, face_count) * (2 * halo + 1)
         # the first try's table is kept for later frames: an estimate past the grid's cells would only waste it
         expected = min(expected, resolution**3)
-        self.cell_set.insert_all(
-            expected,
-            lambda table: wp.launch(kernel, dim=face_count, inputs=[vertices, faces, origin, cell, resolution, halo, shift,
-                                                                    table], device=self.device),
-            measure=measure,
-        )
+
+        def insert(table: HashSetView) -> None:
+            wp.launch(kernel, dim=face_count, inputs=[vertices, faces, origin, cell, resolution, shift, table],
+                      device=self.device)
+            if halo > 0:
+                # the surface cells are listed first; the halo pass reads them while it lists more after them.
+                # Its threads cover the planned surface cells, and stride over any beyond.
+                wp.copy(self.surface_count, table.count)
+                threads = max(table.list_capacity if measure else self.surface_planned, 1) * volume
+                wp.launch(_insert_halo_cells, dim=threads, inputs=[table, self.surface_count, halo, resolution, shift,
+                                                                   threads], device=self.device)
+
+        self.cell_set.insert_all(expected, insert, measure=measure)
+        if measure and halo > 0:
+            self.surface_planned = with_headroom(self.host.read(self.surface_count, 0))
         keys, _ = self.cell_set.sort_listed(shift, KEY_TOP_BIT)
         self.cell_count = self.cell_set.view.count
         return keys
@@ -375,12 +385,10 @@ def _insert_surface_cells(
     origin: wp.vec3,
     cell: float,
     resolution: int,
-    halo: int,
     shift: int,
     table: HashSetView,
 ):
-    # every finest cell within `halo` cells of one the triangle overlaps: the cells whose cube, grown by
-    # `halo` cells on every side, the triangle overlaps (separating axes), over its grown bounding box
+    # every finest cell the triangle overlaps (separating axes), tested over the triangle's bounding box
     f = wp.tid()
     tri = faces[f]
     a = vertices[tri[0]]
@@ -390,11 +398,10 @@ def _insert_surface_cells(
     inv_cell = 1.0 / cell
     lo = quantize(wp.min(wp.min(a, b), c) - pad, origin, inv_cell, resolution)
     hi = quantize(wp.max(wp.max(a, b), c) + pad, origin, inv_cell, resolution)
-    top = resolution - 1
-    half = (0.5 + float(halo)) * cell + _SLACK * cell
-    for x in range(wp.max(lo[0] - halo, 0), wp.min(hi[0] + halo, top) + 1):
-        for y in range(wp.max(lo[1] - halo, 0), wp.min(hi[1] + halo, top) + 1):
-            for z in range(wp.max(lo[2] - halo, 0), wp.min(hi[2] + halo, top) + 1):
+    half = 0.5 * cell + _SLACK * cell
+    for x in range(lo[0], hi[0] + 1):
+        for y in range(lo[1], hi[1] + 1):
+            for z in range(lo[2], hi[2] + 1):
                 centre = origin + wp.vec3(float(x) + 0.5, float(y) + 0.5, float(z) + 0.5) * cell
                 if triangle_overlaps_cube(a, b, c, centre, half):
                     set_insert(table, morton3(x, y, z) << wp.int64(shift))
@@ -407,20 +414,40 @@ def _insert_centroid_cells(
     origin: wp.vec3,
     cell: float,
     resolution: int,
-    halo: int,
     shift: int,
     table: HashSetView,
 ):
-    # the cell holding the triangle's centroid (the paper's rule) and those within `halo` cells of it
     f = wp.tid()
     tri = faces[f]
     centroid = (vertices[tri[0]] + vertices[tri[1]] + vertices[tri[2]]) / 3.0
     g = quantize(centroid, origin, 1.0 / cell, resolution)
+    set_insert(table, morton3(g[0], g[1], g[2]) << wp.int64(shift))
+
+
+@wp.kernel(enable_backward=False)
+def _insert_halo_cells(
+    cells: HashSetView,
+    surface_count: wp.array(dtype=wp.int32),
+    halo: int,
+    resolution: int,
+    shift: int,
+    stride: int,
+):
+    # listed cell i // width^3 (one of the first surface_count, listed before this pass) and its neighbour
+    # i % width^3 within `halo` cells (clamped into the grid), for i = tid, tid + stride, ...
+    width = 2 * halo + 1
+    volume = width * width * width
+    total = wp.min(surface_count[0], cells.list_capacity) * volume
     top = resolution - 1
-    for x in range(wp.max(g[0] - halo, 0), wp.min(g[0] + halo, top) + 1):
-        for y in range(wp.max(g[1] - halo, 0), wp.min(g[1] + halo, top) + 1):
-            for z in range(wp.max(g[2] - halo, 0), wp.min(g[2] + halo, top) + 1):
-                set_insert(table, morton3(x, y, z) << wp.int64(shift))
+    i = wp.tid()
+    while i < total:
+        cell = morton3_decode(cells.listed_keys[i // volume] >> wp.int64(shift))
+        r = i % volume
+        x = wp.clamp(cell[0] + r // (width * width) - halo, 0, top)
+        y = wp.clamp(cell[1] + (r // width) % width - halo, 0, top)
+        z = wp.clamp(cell[2] + r % width - halo, 0, top)
+        set_insert(cells, morton3(x, y, z) << wp.int64(shift))
+        i += stride
 
 
 @wp.kernel(enable_backward=False)
