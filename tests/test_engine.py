@@ -133,6 +133,10 @@ def test_octree_invariants(device, name):
     for level in range(depth + 1):
         expected = np.unique(_encode(finest >> (depth - level), level))
         assert np.array_equal(np.sort(codes[levels == level]), expected)
+    # the counts the engine reports (from where each level starts in its sorted nodes) are these nodes'
+    counts = field.stats()["counts"]
+    assert counts["nodes_per_level"] == np.bincount(levels, minlength=depth + 1).tolist()
+    assert counts["octree_nodes"] == len(levels)
 
 
 def test_centroid_rule_refines_only_centroid_cells(device):

@@ -592,7 +592,7 @@ class DistanceField:
             sizes.append(capacity)
         k = len(sizes)
         wp.copy(self._report, self._normals.winding_frame, dest_offset=k, count=1)
-        wp.copy(self._report, self._octree.level_counts_array, dest_offset=k + 1, count=self._depth + 1)
+        wp.copy(self._report, self._octree.level_starts, dest_offset=k + 1, count=self._depth + 1)
         return sizes
 
     def _take_report(self) -> bool:

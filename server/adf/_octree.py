@@ -89,7 +89,7 @@ class Octree:
         # device results, filled by build()
         self.cell_count: wp.array | None = None  # (1,) distinct cells (raw: may exceed the list's capacity)
         self.totals = buffers.ensure("oct.totals", 2, wp.int32)  # octree nodes, internal nodes
-        self.level_counts_array: wp.array | None = None  # (depth + 1,) octree nodes per level
+        self.level_starts = buffers.ensure("oct.level_starts", depth + 1, wp.int32)  # first node of each level
         self.corner_keys: wp.array | None = None
         self.corner_slot: wp.array | None = None
         self.child_mask: wp.array | None = None
@@ -116,11 +116,11 @@ class Octree:
                 (self.totals, 0, self.node_capacity), (self.totals, 1, self.internal_capacity),
                 (self.corner_set.view.count, 0, self.corner_set.list_capacity)]
 
-    def take_counts(self, counts: list[int], level_counts: np.ndarray) -> None:
-        """Record the counts a planned build found (in the order of `report`)."""
+    def take_counts(self, counts: list[int], level_starts: np.ndarray) -> None:
+        """Record the counts a build found (in the order of `report`), and its levels' first nodes."""
         self.surface_cell_count = counts[0]
         self.node_count, self.internal_count, self.corner_count = counts[-3], counts[-2], counts[-1]
-        self.level_counts = level_counts.astype(np.int64)
+        self.level_counts = np.diff(np.append(level_starts.astype(np.int64), self.node_count))
 
     def view(self, origin: wp.vec3, side: float) -> OctreeView:
         v = OctreeView()
@@ -178,17 +178,13 @@ class Octree:
             (capacity, wp.int32), (tree_nodes, wp.int32), (tree_nodes, wp.int32))
         link_radix_tree(cell_keys, self.cell_count, capacity, parent, left, right, first, prefix)
 
-        level_counts = b.ensure("oct.level_counts", d + 1, wp.int32)
-        level_counts.zero_()
-        self.level_counts_array = level_counts
         wp.launch(_count_octree_nodes, dim=tree_nodes, inputs=[parent, prefix, self.cell_count, capacity, d],
-                  outputs=[counts, level_counts], device=self.device)
+                  outputs=[counts], device=self.device)
         wp.utils.array_scan(counts[:tree_nodes], offsets[:tree_nodes], inclusive=False)
-        wp.launch(_octree_totals, dim=1, inputs=[level_counts, d], outputs=[self.totals], device=self.device)
+        wp.launch(_octree_totals, dim=1, inputs=[counts, offsets, self.cell_count, capacity], outputs=[self.totals],
+                  device=self.device)
         if measure:
-            self.level_counts = self.host.read_array(level_counts, d + 1).astype(np.int64)
-            self.node_count = int(self.level_counts.sum())
-            self.internal_count = self.node_count - int(self.level_counts[d])
+            self.node_count, self.internal_count = (int(x) for x in self.host.read_array(self.totals, 2))
             self.node_capacity = with_headroom(self.node_count)
             self.internal_capacity = with_headroom(self.internal_count)
         node_keys = b.ensure("oct.node_keys", 2 * self.node_capacity, wp.int64)
@@ -210,8 +206,8 @@ class Octree:
         self.child_mask = b.ensure("oct.child_mask", internal, wp.int32)
         self.first_child = b.ensure("oct.first_child", internal, wp.int32)
         self.child_mask.zero_()
-        wp.launch(_mark_first_children, dim=nodes, inputs=[self.node_keys, self.totals], outputs=[flags],
-                  device=self.device)
+        wp.launch(_mark_first_children, dim=nodes, inputs=[self.node_keys, self.totals],
+                  outputs=[flags, self.level_starts], device=self.device)
         wp.utils.array_scan(flags[:nodes], scan[:nodes], inclusive=True)
         wp.launch(_link_children, dim=nodes, inputs=[self.node_keys, self.totals, flags, scan, internal],
                   outputs=[self.child_mask, self.first_child], device=self.device)
@@ -283,7 +279,6 @@ def _count_octree_nodes(
     cell_capacity: int,
     depth: int,
     counts: wp.array(dtype=wp.int32),
-    level_counts: wp.array(dtype=wp.int32),
 ):
     # Algorithm 1: the edge (parent -> node) yields the octree nodes of the levels its prefix crosses.
     node = wp.tid()
@@ -295,17 +290,16 @@ def _count_octree_nodes(
     level = _tree_node_level(prefix, node, internal_count, depth)
     parent_level = _tree_node_level(prefix, parent[node], internal_count, depth)
     counts[node] = wp.max(level - parent_level, 0)
-    for lvl in range(parent_level + 1, level + 1):
-        wp.atomic_add(level_counts, lvl, 1)
 
 
 @wp.kernel(enable_backward=False)
-def _octree_totals(level_counts: wp.array(dtype=wp.int32), depth: int, totals: wp.array(dtype=wp.int32)):
-    total = int(0)
-    for level in range(depth + 1):
-        total += level_counts[level]
-    totals[0] = total
-    totals[1] = total - level_counts[depth]
+def _octree_totals(counts: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
+                   cell_count: wp.array(dtype=wp.int32), cell_capacity: int, totals: wp.array(dtype=wp.int32)):
+    # all nodes: the scan's end; the finest level's nodes are the cells themselves (each tree leaf is one)
+    cells = wp.min(cell_count[0], cell_capacity)
+    last = 2 * cells - 2
+    totals[0] = offsets[last] + counts[last]
+    totals[1] = totals[0] - cells
 
 
 @wp.kernel(enable_backward=False)
@@ -342,14 +336,20 @@ def _fill_octree_nodes(
 
 @wp.kernel(enable_backward=False)
 def _mark_first_children(node_keys: wp.array(dtype=wp.int64), totals: wp.array(dtype=wp.int32),
-                         flags: wp.array(dtype=wp.int32)):
+                         flags: wp.array(dtype=wp.int32), level_starts: wp.array(dtype=wp.int32)):
+    # flags the first child of each parent, and records where each level starts (nodes are sorted by level)
     j = wp.tid()
     flags[j] = 0
-    if j > 0 and j < totals[0]:
+    if j == 0:
+        level_starts[0] = 0
+    elif j < totals[0]:
         key = node_keys[j]
         previous = node_keys[j - 1]
-        same_level = (key >> wp.int64(_LEVEL_SHIFT)) == (previous >> wp.int64(_LEVEL_SHIFT))
+        level = int(key >> wp.int64(_LEVEL_SHIFT))
+        same_level = level == int(previous >> wp.int64(_LEVEL_SHIFT))
         same_parent = ((key & _CODE_MASK) >> wp.int64(3)) == ((previous & _CODE_MASK) >> wp.int64(3))
+        if not same_level:
+            level_starts[level] = j
         if not (same_level and same_parent):
             flags[j] = 1
 
