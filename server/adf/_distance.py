@@ -132,7 +132,6 @@ class CornerField:
         self.coherent = False  # whether the last compute started from last frame's faces
         self._previous_capacity = 0
         self._previous_count = buffers.ensure("corner.prev_count", 1, wp.int32)
-        self._next_count = buffers.ensure("corner.next_count", 1, wp.int32)
         self._next = None
         self._previous_keys = buffers.ensure("corner.prev_keys", 1, wp.int64)
         self._previous_face = buffers.ensure("corner.prev_face", 1, wp.int32)
@@ -232,15 +231,13 @@ class CornerField:
         if not coherent:
             self._next = None  # nothing is carried to the next frame
             return
-        # this frame's corners and their nearest faces, for the next frame once this one is kept (the keys
-        # past the count are UNLISTED, after every lattice key, so a binary search over them needs no count)
-        next_keys = b.ensure("corner.next_keys", capacity, wp.int64)
+        # this frame's nearest faces, for the next frame once this one is kept, with its corners (the keys
+        # past the count are UNLISTED, after every lattice key, so a binary search over them needs no count),
+        # which stay in their buffer until the next frame's octree
         next_face = b.ensure("corner.next_face", capacity, wp.int32)
-        wp.copy(next_keys, corner_keys, count=capacity)
-        wp.copy(self._next_count, count, count=1)
         wp.launch(_leaf_faces, dim=capacity, inputs=[self.leaf, count, capacity, bvh], outputs=[next_face],
                   device=self.device)
-        self._next = (next_keys, next_face, capacity, np.asarray(centre, dtype=np.float64).copy(), domain.side)
+        self._next = (corner_keys, count, next_face, capacity, np.asarray(centre, dtype=np.float64).copy(), domain.side)
 
     def keep_frame(self) -> None:
         """Make the last computed frame's faces the next frame's starting bounds. A frame that outgrew its
@@ -248,13 +245,13 @@ class CornerField:
         answer (down to which of two equally near faces is named) does not depend on the failed run."""
         if self._next is None:
             return
-        next_keys, next_face, capacity, centre, side = self._next
+        keys, count, next_face, capacity, centre, side = self._next
         b = self.buffers
         self._previous_keys = b.ensure("corner.prev_keys", capacity, wp.int64)
         self._previous_face = b.ensure("corner.prev_face", capacity, wp.int32)
-        wp.copy(self._previous_keys, next_keys, count=capacity)
+        wp.copy(self._previous_keys, keys, count=capacity)
         wp.copy(self._previous_face, next_face, count=capacity)
-        wp.copy(self._previous_count, self._next_count, count=1)
+        wp.copy(self._previous_count, count, count=1)
         self._previous_capacity, self._previous_centre, self._previous_side = capacity, centre, side
 
     def planned_split(self, expected_count: int, internal_count: int) -> SearchSplit:
