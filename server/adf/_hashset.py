@@ -119,7 +119,7 @@ class HashSet:
         view.capacity = capacity
         view.list_capacity = capacity // 2
         view.listed_keys = b.ensure(self.name + ".keys", capacity, wp.int64)
-        view.listed_keys.fill_(UNLISTED)
+        view.listed_keys[: view.list_capacity].fill_(UNLISTED)  # the rest is the sort's room
         view.count = b.ensure(f"{self.name}.count.{self.label}", 1, wp.int32)
         view.count.zero_()
         self._view = view

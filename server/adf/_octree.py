@@ -188,7 +188,7 @@ class Octree:
             self.node_capacity = with_headroom(self.node_count)
             self.internal_capacity = with_headroom(self.internal_count)
         node_keys = b.ensure("oct.node_keys", 2 * self.node_capacity, wp.int64)
-        node_keys.fill_(UNLISTED)
+        node_keys[: self.node_capacity].fill_(UNLISTED)  # the rest is the sort's room
         wp.launch(_fill_octree_nodes, dim=tree_nodes,
                   inputs=[cell_keys, parent, prefix, first, self.cell_count, capacity, d, offsets, self.node_capacity],
                   outputs=[node_keys], device=self.device)
