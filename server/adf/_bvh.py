@@ -9,7 +9,7 @@ two vec4, the lower corner's w holding the child's triangle count), its node id,
 triangles under it. One visit reads both children's boxes in four 16-byte loads, and a child with at
 most LEAF_SIZE triangles is searched directly over its contiguous triangles (the tree stays binary, one
 triangle per leaf, as the octree derivation needs; the searches just stop early). Triangles are packed
-three vec4 per leaf, and the winding-number moments four vec4 per slot, for the same reason.
+three vec4 per leaf, for the same reason, and the winding-number moments four vec4 per internal node.
 
 The winding numbers (Barill et al. 2018) replace a node far from the point by the first two terms of its
 expansion: the dipole (the sum of area-weighted normals) and the first moment of the normals about the
@@ -68,13 +68,14 @@ class BvhView:
     leaf_face: wp.array(dtype=wp.int32)  # (n,) face index of each leaf
     face_leaf: wp.array(dtype=wp.int32)  # (n,) leaf of each face
     leaf_key: wp.array(dtype=wp.int64)  # (n,) sorted keys, for spatial seeds
-    # Fast-winding-number moments of the child in each slot, four vec4 per slot, so that one visit reads
-    # both children's in one 128-byte line (a one-element array when the sign does not need them):
-    #   4s: area-weighted centroid; w: a radius bounding the child around it
-    #   4s + 1: sum of area-weighted normals; w: total area
-    #   4s + 2, 4s + 3: symmetric part S of sum(area * normal x (centroid - centre)): (Sxx, Syy, Szz, Sxy),
+    # Fast-winding-number moments of each internal node i, four vec4 (a one-element array when the sign
+    # does not need them). A single triangle's are worked out from it where needed (`leaf_moments`): its
+    # first moment about its centroid is zero, so storing them would only repeat the triangle.
+    #   4i: area-weighted centroid; w: a radius bounding the node around it
+    #   4i + 1: sum of area-weighted normals; w: total area
+    #   4i + 2, 4i + 3: symmetric part S of sum(area * normal x (centroid - centre)): (Sxx, Syy, Szz, Sxy),
     #   (Sxz, Syz, 0, 0)
-    slot_moments: wp.array(dtype=wp.vec4)
+    node_moments: wp.array(dtype=wp.vec4)
 
 
 class Bvh:
@@ -101,7 +102,7 @@ class Bvh:
         self.slot_first = b.array("bvh.slot_first", slots, wp.int32)
         self.slot_count = b.array("bvh.slot_count", slots, wp.int32)
         self.triangles = b.array("bvh.triangles", 3 * n, wp.vec4)
-        self.slot_moments = b.array("bvh.slot_moments", 4 * slots if with_moments else 1, wp.vec4)
+        self.node_moments = b.array("bvh.node_moments", 4 * max(n - 1, 1) if with_moments else 1, wp.vec4)
         self._buffers = b
         self._cuts: dict[int, wp.array] = {}
 
@@ -143,9 +144,9 @@ class Bvh:
         wp.launch(
             _refit,
             dim=self.face_count,
-            inputs=[vertices, faces, self.sort_faces, self.parent_slot, self.slot_count, self.internal_count,
-                    1 if self.with_moments else 0],
-            outputs=[self.slot_lower, self.slot_upper, self.triangles, self.visits, self.slot_moments],
+            inputs=[vertices, faces, self.sort_faces, self.parent_slot, self.slot_count, self.slot_child,
+                    self.internal_count, 1 if self.with_moments else 0],
+            outputs=[self.slot_lower, self.slot_upper, self.triangles, self.visits, self.node_moments],
             device=self.device,
         )
 
@@ -170,7 +171,7 @@ class Bvh:
         v.leaf_face = self.sort_faces
         v.face_leaf = self.face_leaf
         v.leaf_key = self.sort_keys
-        v.slot_moments = self.slot_moments
+        v.node_moments = self.node_moments
         return v
 
     def leaf_faces(self) -> np.ndarray:
@@ -360,18 +361,29 @@ def _solid_angle_of_range(bvh: BvhView, p: wp.vec3, first: int, count: int) -> f
 
 
 @wp.func
-def _far_field(bvh: BvhView, slot: int, u: wp.vec3, dist: float) -> float:
-    """4 pi times the winding number of a far slot's child at distance `dist` along unit `u` (from the
-    point to the child's centre): the dipole n.u / d^2, plus the first moment's (tr S - 3 u.S.u) / d^3."""
-    s0 = load_vec4(bvh.slot_moments, 4 * slot + 2)
-    s1 = load_vec4(bvh.slot_moments, 4 * slot + 3)
+def leaf_moments(a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """A triangle's centroid with the radius of its farthest corner, and its area-weighted normal with its
+    area (the first two of the moments in BvhView.node_moments; its first moment about the centroid is 0)."""
+    mid = (a + b + c) / 3.0
+    n = 0.5 * wp.cross(b - a, c - a)
+    centre_radius = wp.vec4(mid[0], mid[1], mid[2],
+                            wp.max(wp.max(wp.length(a - mid), wp.length(b - mid)), wp.length(c - mid)))
+    return centre_radius, wp.vec4(n[0], n[1], n[2], wp.length(n))
+
+
+@wp.func
+def _far_field(bvh: BvhView, node: int, u: wp.vec3, dist: float) -> float:
+    """4 pi times the winding number of a far internal node at distance `dist` along unit `u` (from the
+    point to the node's centre): the dipole n.u / d^2, plus the first moment's (tr S - 3 u.S.u) / d^3."""
+    s0 = load_vec4(bvh.node_moments, 4 * node + 2)
+    s1 = load_vec4(bvh.node_moments, 4 * node + 3)
     su = wp.vec3(
         s0[0] * u[0] + s0[3] * u[1] + s1[0] * u[2],
         s0[3] * u[0] + s0[1] * u[1] + s1[1] * u[2],
         s1[0] * u[0] + s1[1] * u[1] + s0[2] * u[2],
     )
     first = (s0[0] + s0[1] + s0[2] - 3.0 * wp.dot(u, su)) / dist
-    return (wp.dot(_xyz(load_vec4(bvh.slot_moments, 4 * slot + 1)), u) + first) / (dist * dist)
+    return (wp.dot(_xyz(load_vec4(bvh.node_moments, 4 * node + 1)), u) + first) / (dist * dist)
 
 
 @wp.func
@@ -387,16 +399,26 @@ def winding_number(bvh: BvhView, p: wp.vec3) -> float:
         count -= 1
         slot = 2 * nodes[count]
         for side in range(2):
-            centre_radius = load_vec4(bvh.slot_moments, 4 * (slot + side))
-            offset = _xyz(centre_radius) - p
-            dist = wp.length(offset)
-            if dist > _FAR_FIELD * centre_radius[3]:
-                total += _far_field(bvh, slot + side, offset / dist, dist)
-            elif bvh.slot_count[slot + side] <= LEAF_SIZE:
-                total += _solid_angle_of_range(bvh, p, bvh.slot_first[slot + side], bvh.slot_count[slot + side])
+            child = bvh.slot_child[slot + side]
+            if child >= bvh.internal_count:  # a single triangle: its dipole far away, else its solid angle
+                leaf = child - bvh.internal_count
+                a, b, c = leaf_triangle(bvh, leaf)
+                centre_radius, normal_area = leaf_moments(a, b, c)
+                offset = _xyz(centre_radius) - p
+                dist = wp.length(offset)
+                if dist > _FAR_FIELD * centre_radius[3]:
+                    total += wp.dot(_xyz(normal_area), offset / dist) / (dist * dist)
+                else:
+                    total += solid_angle(p, a, b, c)
             else:
-                nodes[count] = bvh.slot_child[slot + side]
-                count += 1
+                centre_radius = load_vec4(bvh.node_moments, 4 * child)
+                offset = _xyz(centre_radius) - p
+                dist = wp.length(offset)
+                if dist > _FAR_FIELD * centre_radius[3]:
+                    total += _far_field(bvh, child, offset / dist, dist)
+                else:
+                    nodes[count] = child
+                    count += 1
     return total * _INV_FOUR_PI
 
 
@@ -538,15 +560,29 @@ def _shifted_moment(s0: wp.vec4, s1: wp.vec4, n: wp.vec4, shift: wp.vec3):
 
 
 @wp.func
+def _child_moments(child: int, internal_count: int, triangles: wp.array(dtype=wp.vec4),
+                   node_moments: wp.array(dtype=wp.vec4)):
+    """A child's four winding moments: an internal node's as stored, a triangle's worked out (both read
+    from L2: written in this launch)."""
+    if child >= internal_count:
+        k = 3 * (child - internal_count)
+        centre_radius, normal_area = leaf_moments(_xyz(load_coherent_vec4(triangles, k)),
+                                                  _xyz(load_coherent_vec4(triangles, k + 1)),
+                                                  _xyz(load_coherent_vec4(triangles, k + 2)))
+        return centre_radius, normal_area, wp.vec4(0.0), wp.vec4(0.0)
+    return (load_coherent_vec4(node_moments, 4 * child), load_coherent_vec4(node_moments, 4 * child + 1),
+            load_coherent_vec4(node_moments, 4 * child + 2), load_coherent_vec4(node_moments, 4 * child + 3))
+
+
+@wp.func
 def _merged_moments(node: int, lower_l: wp.vec4, upper_l: wp.vec4, lower_r: wp.vec4, upper_r: wp.vec4,
-                    slot_moments: wp.array(dtype=wp.vec4)):
-    """Node's winding moments from its children's slots (read from L2: written in this launch)."""
-    left = 8 * node  # slot 2 node, four vec4 per slot
-    right = left + 4
-    centre_radius_l = load_coherent_vec4(slot_moments, left)
-    centre_radius_r = load_coherent_vec4(slot_moments, right)
-    normal_l = load_coherent_vec4(slot_moments, left + 1)
-    normal_r = load_coherent_vec4(slot_moments, right + 1)
+                    slot_child: wp.array(dtype=wp.int32), internal_count: int, triangles: wp.array(dtype=wp.vec4),
+                    node_moments: wp.array(dtype=wp.vec4)):
+    """Node's winding moments from its two children's."""
+    centre_radius_l, normal_l, s0_l, s1_l = _child_moments(slot_child[2 * node], internal_count, triangles,
+                                                            node_moments)
+    centre_radius_r, normal_r, s0_r, s1_r = _child_moments(slot_child[2 * node + 1], internal_count, triangles,
+                                                            node_moments)
     total = normal_l[3] + normal_r[3]
     centre_l = _xyz(centre_radius_l)
     centre_r = _xyz(centre_radius_r)
@@ -555,10 +591,8 @@ def _merged_moments(node: int, lower_l: wp.vec4, upper_l: wp.vec4, lower_r: wp.v
         mid = (normal_l[3] * centre_l + normal_r[3] * centre_r) / total
     radius = wp.max(_child_radius(mid, centre_l, centre_radius_l[3], lower_l, upper_l),
                     _child_radius(mid, centre_r, centre_radius_r[3], lower_r, upper_r))
-    l0, l1 = _shifted_moment(load_coherent_vec4(slot_moments, left + 2), load_coherent_vec4(slot_moments, left + 3),
-                             normal_l, centre_l - mid)
-    r0, r1 = _shifted_moment(load_coherent_vec4(slot_moments, right + 2), load_coherent_vec4(slot_moments, right + 3),
-                             normal_r, centre_r - mid)
+    l0, l1 = _shifted_moment(s0_l, s1_l, normal_l, centre_l - mid)
+    r0, r1 = _shifted_moment(s0_r, s1_r, normal_r, centre_r - mid)
     return wp.vec4(mid[0], mid[1], mid[2], radius), normal_l + normal_r, l0 + r0, l1 + r1
 
 
@@ -569,13 +603,14 @@ def _refit(
     leaf_face: wp.array(dtype=wp.int32),
     parent_slot: wp.array(dtype=wp.int32),
     slot_count: wp.array(dtype=wp.int32),
+    slot_child: wp.array(dtype=wp.int32),
     internal_count: int,
     with_moments: int,
     slot_lower: wp.array(dtype=wp.vec4),
     slot_upper: wp.array(dtype=wp.vec4),
     triangles: wp.array(dtype=wp.vec4),
     visits: wp.array(dtype=wp.int32),
-    slot_moments: wp.array(dtype=wp.vec4),
+    node_moments: wp.array(dtype=wp.vec4),
 ):
     k = wp.tid()
     tri = faces[leaf_face[k]]
@@ -588,27 +623,24 @@ def _refit(
     node = internal_count + k
     lower = wp.min(wp.min(a, b), c)
     upper = wp.max(wp.max(a, b), c)
-    # this node's winding moments (see BvhView.slot_moments); a triangle's first moment about its centroid is zero
-    mid = (a + b + c) / 3.0
-    n = 0.5 * wp.cross(b - a, c - a)
-    centre_radius = wp.vec4(mid[0], mid[1], mid[2],
-                            wp.max(wp.max(wp.length(a - mid), wp.length(b - mid)), wp.length(c - mid)))
-    normal_area = wp.vec4(n[0], n[1], n[2], wp.length(n))
+    # Walk up; each node's box goes into its slot in the parent, and an internal node's winding moments
+    # (see BvhView.node_moments) into their own place; the second child to arrive at a node merges both
+    # (Karras 2012). Writers fence before counting their arrival and the merger reads its children from L2,
+    # so no stale value is merged.
+    centre_radius = wp.vec4(0.0)
+    normal_area = wp.vec4(0.0)
     moment_0 = wp.vec4(0.0)
     moment_1 = wp.vec4(0.0)
-    # Walk up; each node's box (and moments) go into its slot in the parent, and the second child to arrive
-    # at a node merges both (Karras 2012). Writers fence before counting their arrival and the merger reads
-    # its children from L2, so no stale value is merged.
     slot = parent_slot[node]
     while slot >= 0:
         count = float(slot_count[slot])
         slot_lower[slot] = wp.vec4(lower[0], lower[1], lower[2], count)
         slot_upper[slot] = wp.vec4(upper[0], upper[1], upper[2], count)
-        if with_moments != 0:
-            slot_moments[4 * slot] = centre_radius
-            slot_moments[4 * slot + 1] = normal_area
-            slot_moments[4 * slot + 2] = moment_0
-            slot_moments[4 * slot + 3] = moment_1
+        if with_moments != 0 and node < internal_count:
+            node_moments[4 * node] = centre_radius
+            node_moments[4 * node + 1] = normal_area
+            node_moments[4 * node + 2] = moment_0
+            node_moments[4 * node + 3] = moment_1
         thread_fence()
         node = slot // 2
         if wp.atomic_add(visits, node, 1) == 0:
@@ -620,6 +652,6 @@ def _refit(
         lower = wp.min(_xyz(lower_0), _xyz(lower_1))
         upper = wp.max(_xyz(upper_0), _xyz(upper_1))
         if with_moments != 0:
-            centre_radius, normal_area, moment_0, moment_1 = _merged_moments(node, lower_0, upper_0, lower_1, upper_1,
-                                                                             slot_moments)
+            centre_radius, normal_area, moment_0, moment_1 = _merged_moments(
+                node, lower_0, upper_0, lower_1, upper_1, slot_child, internal_count, triangles, node_moments)
         slot = parent_slot[node]
