@@ -165,6 +165,27 @@ def test_halo_adds_the_neighbours_of_surface_cells(device):
     assert np.array_equal(np.sort(_encode(cells[levels == depth], depth)), expected)
 
 
+@pytest.mark.parametrize("halo", [1, 2])
+def test_halo_pass_with_fewer_threads_than_neighbours_finds_the_same_cells(device, monkeypatch, halo):
+    # the halo pass's threads stride over (surface cell, neighbour) pairs beyond their count: with 37 threads
+    # every one strides, in the measured first frame and in planned frames after it
+    from badf.server.adf import _octree
+
+    vertices, faces = meshes.load("spot")
+    wide = DistanceField(vertices, faces, depth=5, halo=halo, device=device)
+    monkeypatch.setattr(_octree, "_HALO_THREADS", 37)
+    narrow = DistanceField(vertices, faces, depth=5, halo=halo, device=device)
+    for frame in (0, 1, 2):
+        if frame:
+            moved = vertices * (1.0 + 0.01 * frame)
+            wide.update(moved)
+            narrow.update(moved)
+        for got, want in zip(narrow.octree_cells(), wide.octree_cells()):
+            np.testing.assert_array_equal(got, want)
+        for got, want in zip(narrow.corner_samples(), wide.corner_samples()):
+            np.testing.assert_array_equal(got, want)
+
+
 @pytest.mark.parametrize("name", ["sphere", "spot", "sheet"])
 def test_unique_corners_are_the_distinct_corner_positions(device, name):
     vertices, faces = meshes.load(name)

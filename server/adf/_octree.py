@@ -38,6 +38,9 @@ LEVEL_SHIFT = 32  # octree node keys: level << 32 | Morton code of the node at i
 _LEVEL_SHIFT = wp.constant(LEVEL_SHIFT)
 _CODE_MASK = wp.constant(wp.int64(0xFFFFFFFF))
 _SLACK = wp.constant(CELL_OVERLAP_SLACK)
+# The halo pass's launch: a first measuring pass sizes it by an estimate, which may be far off for a huge
+# mesh at depth 10; more threads than this only add launch cost, and fewer stride over the rest.
+_HALO_THREADS = 1 << 24
 
 
 @wp.struct
@@ -154,9 +157,9 @@ class Octree:
                       device=self.device)
             if halo > 0:
                 # the surface cells are listed first; the halo pass reads them while it lists more after them.
-                # Its threads cover the planned surface cells, and stride over any beyond.
+                # Its threads cover the planned surface cells (at most _HALO_THREADS), and stride over any beyond.
                 wp.copy(self.surface_count, table.count)
-                threads = max(table.list_capacity if measure else self.surface_planned, 1) * volume
+                threads = min(max(table.list_capacity if measure else self.surface_planned, 1) * volume, _HALO_THREADS)
                 wp.launch(_insert_halo_cells, dim=threads, inputs=[table, self.surface_count, halo, resolution, shift,
                                                                    threads], device=self.device)
 
