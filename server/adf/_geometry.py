@@ -238,12 +238,8 @@ def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
 
 @wp.func
 def _segment_distance_sq(p: wp.vec3, a: wp.vec3, b: wp.vec3) -> float:
-    ab = b - a
-    length_sq = wp.dot(ab, ab)
-    t = float(0.0)
-    if length_sq > 0.0:
-        t = wp.clamp(wp.dot(p - a, ab) / length_sq, 0.0, 1.0)
-    return wp.length_sq(p - (a + t * ab))
+    q, _feature = _closest_on_segment(p, a, b, VERTEX_A, VERTEX_B, EDGE_AB)
+    return wp.length_sq(p - q)
 
 
 @wp.func
