@@ -352,15 +352,6 @@ def _cut_slots(bvh: BvhView, levels: int, cut: wp.array(dtype=wp.int32)):
 
 
 @wp.func
-def _solid_angle_of_range(bvh: BvhView, p: wp.vec3, first: int, count: int) -> float:
-    total = float(0.0)
-    for leaf in range(first, first + count):
-        a, b, c = leaf_triangle(bvh, leaf)
-        total += solid_angle(p, a, b, c)
-    return total
-
-
-@wp.func
 def leaf_moments(a: wp.vec3, b: wp.vec3, c: wp.vec3):
     """A triangle's centroid with the radius of its farthest corner, and its area-weighted normal with its
     area (the first two of the moments in BvhView.node_moments; its first moment about the centroid is 0)."""
@@ -390,7 +381,8 @@ def _far_field(bvh: BvhView, node: int, u: wp.vec3, dist: float) -> float:
 def winding_number(bvh: BvhView, p: wp.vec3) -> float:
     """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018)."""
     if bvh.internal_count == 0:
-        return _solid_angle_of_range(bvh, p, 0, 1) * _INV_FOUR_PI
+        a, b, c = leaf_triangle(bvh, 0)  # a single triangle, and no tree
+        return solid_angle(p, a, b, c) * _INV_FOUR_PI
     nodes = stack_int()
     nodes[0] = 0
     count = int(1)
