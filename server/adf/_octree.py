@@ -38,8 +38,8 @@ LEVEL_SHIFT = 32  # octree node keys: level << 32 | Morton code of the node at i
 _LEVEL_SHIFT = wp.constant(LEVEL_SHIFT)
 _CODE_MASK = wp.constant(wp.int64(0xFFFFFFFF))
 _SLACK = wp.constant(CELL_OVERLAP_SLACK)
-# The halo pass's launch: a first measuring pass sizes it by an estimate, which may be far off for a huge
-# mesh at depth 10; more threads than this only add launch cost, and fewer stride over the rest.
+# The most threads the halo pass launches. A first measuring pass sizes it by an estimate, which for a huge
+# mesh at depth 10 can pass what one launch should hold; its threads stride over the pairs beyond them.
 _HALO_THREADS = 1 << 24
 
 
