@@ -472,7 +472,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--clients", type=int, default=defaults.clients, help="client processes (default 8)")
     parser.add_argument("--objects", type=int, default=defaults.objects_per_client, help="objects per client (4)")
     parser.add_argument("--seconds", type=float, default=defaults.seconds, help="how long the clients run (60)")
-    parser.add_argument("--warm-up", type=float, default=None, help="seconds before memory is compared (a quarter)")
+    parser.add_argument("--warm-up", type=float, default=None, help="seconds before memory is compared (a quarter of --seconds, at least 5)")
     parser.add_argument("--device", default=defaults.device, help="the worker's device: cpu, cuda:0, ... (cpu)")
     parser.add_argument("--depth", type=int, default=defaults.depth, help="octree depth of every object (4)")
     parser.add_argument("--grid", type=int, default=defaults.grid, help="cube faces split grid x grid (8)")

@@ -364,6 +364,7 @@ class RemoteObject:
         self.face_count = info.face_count
         self.options = info.options
         self._frame = info.frame
+        self._deleted = False  # set by delete(); a reregister() serves the object again
 
     def __repr__(self) -> str:
         return f"RemoteObject({self.name!r}, worker={self.worker!r}, frame={self._frame})"
@@ -398,8 +399,12 @@ class RemoteObject:
     def stream(self, vertices: np.ndarray) -> int:
         """Send (N, 3) vertices as the next frame without waiting; returns its number. The worker applies
         the newest frame it has and drops older pending ones (see `info().frames_dropped`). Raises
-        ObjectUnavailableError once the client has seen the object's worker go; a frame sent in the few
-        milliseconds before that is lost without a word."""
+        ObjectUnavailableError once the client has seen the object's worker go (a frame sent in the few
+        milliseconds before that is lost without a word), and ObjectNotFoundError after `delete()` on this
+        handle. A frame streamed to an object that another client deleted is dropped by the router unseen:
+        `update()` waits for the worker's answer instead."""
+        if self._deleted:
+            raise ObjectNotFoundError(f"{self.name!r} was deleted through this handle; reregister() serves it again")
         frame = self._next_frame(vertices)
         self._client._check_worker(self.worker, self.name)
         key = self._client.keys.object_frame(self.name)
@@ -423,7 +428,8 @@ class RemoteObject:
         closest_point (P, 3); normal (P, 3); face (P,) int32; and `frame`, the frame that answered.
         Its arrays are read-only views of the received message (copy them to change them).
         """
-        request = QueryRequest(self.name, points, mode=mode, outputs=tuple(outputs))
+        outputs = (outputs,) if isinstance(outputs, str) else tuple(outputs)  # "distance" as the engine takes it
+        request = QueryRequest(self.name, points, mode=mode, outputs=outputs)  # type: ignore[arg-type]
         reply = self._ask(self._client.keys.object_query(self.name), request, QueryReply, timeout)
         self._saw(reply.frame)
         return reply
@@ -482,6 +488,7 @@ class RemoteObject:
         """Delete the object on its worker; returns its last applied frame."""
         deleted = self._ask(self._client.keys.object_delete(self.name), DeleteRequest(self.name), Deleted, timeout)
         self._client._drop_publisher(self._client.keys.object_frame(self.name))
+        self._deleted = True
         return deleted.frame
 
     def _ask(self, key: str, request: Message, expect: type[M], timeout: float | None) -> M:

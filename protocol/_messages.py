@@ -323,7 +323,7 @@ class ObjectOptions:
 
     def __post_init__(self) -> None:
         owner = "ObjectOptions"
-        _set(self, "depth", _check_int(owner, "depth", self.depth, minimum=0, maximum=MAX_DEPTH))
+        _set(self, "depth", _check_int(owner, "depth", self.depth, minimum=1, maximum=MAX_DEPTH))
         _check_choice(owner, "sign", self.sign, SIGN_METHODS)
         if self.band is not None:
             _set(self, "band", _check_number(owner, "band", self.band, positive=True))

@@ -7,6 +7,8 @@ from typing import Literal, Sequence
 
 import zenoh
 
+from badf.protocol._errors import InvalidOptionError
+
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 ZenohMode = Literal["router", "peer", "client"]
@@ -29,18 +31,47 @@ def zenoh_config(
     override the base: `listen` None keeps the base's (Zenoh's default for a router is every interface's
     port 7447, for a peer a random port), while an empty `listen` means listen nowhere. `connect_timeout_s`
     bounds how long opening the session waits for `connect`.
+
+    Raises InvalidOptionError naming the endpoint or the config file that Zenoh does not accept. Zenoh checks
+    an endpoint's form here (PROTOCOL/ADDRESS); whether it can be reached is known only when a session opens.
     """
     if config_file is None:
         config = zenoh.Config()
         config.insert_json5("scouting/multicast/enabled", "false")
         config.insert_json5("transport/shared_memory/enabled", "false")
     else:
-        config = zenoh.Config.from_file(config_file)
+        try:
+            config = zenoh.Config.from_file(config_file)
+        except zenoh.ZError as error:
+            raise InvalidOptionError(f"cannot use the Zenoh config file {config_file!r}: {_first_line(error)}") from None
     config.insert_json5("mode", json.dumps(mode))
     if listen is not None:
-        config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+        config.insert_json5("listen/endpoints", _endpoints_json(listen, "listen"))
     if connect:
-        config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+        config.insert_json5("connect/endpoints", _endpoints_json(connect, "connect"))
     if connect_timeout_s is not None:
         config.insert_json5("connect/timeout_ms", json.dumps(max(1, round(connect_timeout_s * 1000))))
     return config
+
+
+def _endpoints_json(endpoints: Sequence[str], role: str) -> str:
+    """The endpoints as JSON, each checked by Zenoh's own parser so that an error names the one at fault."""
+    if isinstance(endpoints, str):
+        endpoints = [endpoints]
+    probe = zenoh.Config()
+    for endpoint in endpoints:
+        if not isinstance(endpoint, str):
+            raise InvalidOptionError(f"a {role} endpoint must be a string like {DEFAULT_ENDPOINT}, got {endpoint!r}")
+        try:
+            probe.insert_json5(f"{role}/endpoints", json.dumps([endpoint]))
+        except zenoh.ZError:
+            raise InvalidOptionError(
+                f"{role} endpoint {endpoint!r} is not a Zenoh endpoint: expected PROTOCOL/ADDRESS, "
+                f"for instance {DEFAULT_ENDPOINT}"
+            ) from None
+    return json.dumps(list(endpoints))
+
+
+def _first_line(error: Exception) -> str:
+    """Zenoh's message without the Rust source location it appends."""
+    return str(error).split(" at /", 1)[0]

@@ -54,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="this worker's id in key expressions (default: <host>-<pid>); with --gpus, the prefix of the ids",
     )  # fmt: skip
     parser.add_argument(
-        "--stats-interval", type=float, default=10.0, metavar="SECONDS", help="seconds between stats lines"
+        "--stats-interval", type=float, default=10.0, metavar="SECONDS", help="seconds between stats lines (default: 10)"
     )
 
 

@@ -61,11 +61,17 @@ def run(args: argparse.Namespace) -> int:
     if args.points < 1:
         print("badf demo: --points must be at least 1", file=sys.stderr)
         return 2
+    from badf.server.adf._tolerances import MAX_DEPTH
+
+    if args.depth is not None and not 1 <= args.depth <= MAX_DEPTH:
+        print(f"badf demo: --depth must be in 1..{MAX_DEPTH}, got {args.depth}", file=sys.stderr)
+        return 2
     device = args.device or _default_device()
     kind = "cuda" if device.startswith("cuda") else "cpu"
-    depth = args.depth or (CLOTH_SPHERE_DEPTH if args.scene == "cloth" else DEFAULT_DEPTH)[kind]
+    chosen = args.depth is not None
+    depth = args.depth if chosen else (CLOTH_SPHERE_DEPTH if args.scene == "cloth" else DEFAULT_DEPTH)[kind]
     print(f"badf demo {args.scene}: worker on {device}, octree depth {depth}"
-          + ("" if args.depth else f" (the default on {'a GPU' if kind == 'cuda' else 'the CPU'}; --depth to change)"))
+          + ("" if chosen else f" (the default on {'a GPU' if kind == 'cuda' else 'the CPU'}; --depth to change)"))
     # Ctrl-C and SIGTERM end the loop; the stack then ends the viewer and the worker, by their pids
     stop = _StopFlag()
     with ExitStack() as stack:

@@ -28,6 +28,7 @@ class RouterSettings:
 
     def __post_init__(self) -> None:
         KeySpace(self.namespace)
+        self.zenoh_config()  # InvalidOptionError now, naming a malformed endpoint or config file
 
     def zenoh_config(self, *, extra_listen: Sequence[str] = ()) -> zenoh.Config:
         """The router's configuration; `extra_listen` endpoints are added to the others (the private

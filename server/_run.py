@@ -39,7 +39,7 @@ def run_worker(settings: WorkerSettings, ready: _Settable | None = None) -> int:
 
     `ready` (for instance a multiprocessing Event) is set once the engine's kernels are loaded (see
     warm_up_engine) and the worker's keys and liveliness token are declared. Exit status 1: the Zenoh
-    session could not be opened (a taken port, a bad config file); 2: the engine or the device is unavailable.
+    session could not be opened (a taken port, a config Zenoh refuses); 2: the engine or the device is unavailable.
     """
     _configure_logging()
     stop = _stop_on_signals()

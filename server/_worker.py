@@ -79,6 +79,7 @@ class WorkerSettings:
             raise ValueError(f"stats_interval_s must be positive, got {self.stats_interval_s}")
         if self.max_waiting_requests < 1 or self.max_waiting_registrations < 1:
             raise ValueError("max_waiting_requests and max_waiting_registrations must be at least 1")
+        self.zenoh_config()  # InvalidOptionError now, naming a malformed endpoint or config file
 
     def zenoh_config(self) -> zenoh.Config:
         listen = self.listen

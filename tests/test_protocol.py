@@ -344,6 +344,7 @@ def test_bad_metadata() -> None:
     register = RegisterRequest("a", VERTICES, FACES).metadata()
     for options, error in [
         ({"depth": -1}, InvalidOptionError),
+        ({"depth": 0}, InvalidOptionError),  # the finest level is 1 at least
         ({"depth": 2.5}, MetadataError),
         ({"sign": "inside"}, InvalidOptionError),
         ({"band": 0}, InvalidOptionError),
@@ -379,6 +380,23 @@ def test_bad_metadata() -> None:
         decode(pack(MessageKind.MESH_REPLY, {"name": "a"}, [VERTICES, None]), MeshReply)  # frame missing
     with pytest.raises(InvalidOptionError):
         MeshRequest("a", faces=1)
+
+
+def test_a_malformed_endpoint_or_config_file_is_named() -> None:
+    from badf.client import Client
+    from badf.protocol import zenoh_config
+
+    with pytest.raises(InvalidOptionError, match="connect endpoint 'garbage' is not a Zenoh endpoint"):
+        zenoh_config(mode="client", connect=["tcp/127.0.0.1:7447", "garbage"])
+    with pytest.raises(InvalidOptionError, match="listen endpoint 'nowhere' is not a Zenoh endpoint"):
+        zenoh_config(mode="router", listen=["nowhere"])
+    with pytest.raises(InvalidOptionError, match="must be a string"):
+        zenoh_config(mode="client", connect=[7447])
+    with pytest.raises(InvalidOptionError, match="cannot use the Zenoh config file '/nonexistent/badf.json5'"):
+        zenoh_config(mode="client", config_file="/nonexistent/badf.json5")
+    with pytest.raises(InvalidOptionError, match="connect endpoint 'garbage'"):
+        Client("garbage")  # before any session is opened
+    zenoh_config(mode="client", connect=["tcp/127.0.0.1:7447", "tcp/[::1]:7447"])  # well-formed ones pass
 
 
 def test_key_space() -> None:

@@ -33,6 +33,7 @@ from badf.protocol import (
     LimitExceededError,
     ObjectOptions,
     NonFiniteError,
+    ObjectNotFoundError,
     QueryRequest,
     RegisterRequest,
     RejectedInputError,
@@ -148,6 +149,22 @@ def test_several_objects_live_side_by_side(client: Client) -> None:
     assert_same_answers(
         client.object("spot"), DistanceField(vertices, faces, depth=5, device="cpu"), sample_points(vertices)
     )
+
+
+def test_one_output_by_name_and_streaming_after_delete(client: Client) -> None:
+    vertices, faces = meshes.load("spot")
+    remote = client.register("spot-single", vertices, faces, depth=4)
+    points = sample_points(vertices, 200)
+    by_name = remote.query(points, mode="exact", outputs="closest_point")  # as DistanceField.query takes it
+    as_tuple = remote.query(points, mode="exact", outputs=("closest_point",))
+    assert by_name.distance is None
+    np.testing.assert_array_equal(by_name.closest_point, as_tuple.closest_point)
+    remote.delete()
+    with pytest.raises(ObjectNotFoundError, match="deleted through this handle"):
+        remote.stream(vertices)
+    remote.reregister()  # serves it again, and streaming works once more
+    remote.stream(vertices + 0.01)
+    assert remote.update(vertices) == remote.frame
 
 
 def test_streamed_sequence_answers_like_the_engine(client: Client) -> None:

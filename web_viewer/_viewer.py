@@ -32,6 +32,7 @@ from badf.protocol import (
     SliceReply,
     WorkerBusyError,
     check_name,
+    zenoh_config,
 )
 from badf.web_viewer._colors import (
     ZERO_CONTOUR_RGB,
@@ -110,6 +111,8 @@ class ViewerSettings:
                 raise ValueError(f"{name} must be a finite positive number, got {value!r}")
         if self.object_name is not None:
             check_name(self.object_name)
+        connect = [self.connect] if isinstance(self.connect, str) else list(self.connect)
+        zenoh_config(mode="client", connect=connect, config_file=self.config_file)  # names a malformed endpoint
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,31 @@
+"""Malformed command lines end with one line on stderr and exit status 2, before anything starts."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from conftest import free_endpoint
+
+CASES = [
+    (["serve", "--listen", "notanendpoint"], "listen endpoint 'notanendpoint' is not a Zenoh endpoint"),
+    (["serve", "--listen", "<free>", "--connect", "garbage"], "connect endpoint 'garbage' is not a Zenoh endpoint"),
+    (["serve", "--router-only", "--listen", "nowhere"], "listen endpoint 'nowhere' is not a Zenoh endpoint"),
+    (["serve", "--listen", "<free>", "--config", "/nonexistent/badf.json5"], "cannot use the Zenoh config file"),
+    (["view", "--connect", "notanendpoint"], "connect endpoint 'notanendpoint' is not a Zenoh endpoint"),
+    (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--depth", "0"], "--depth must be in 1..10, got 0"),
+    (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--depth", "11"], "--depth must be in 1..10, got 11"),
+]
+
+
+@pytest.mark.parametrize(("args", "message"), CASES, ids=[" ".join(args) for args, _ in CASES])
+def test_a_malformed_command_line_is_one_clear_line(args: list[str], message: str) -> None:
+    args = [free_endpoint() if arg == "<free>" else arg for arg in args]
+    done = subprocess.run([sys.executable, "-m", "badf.cli", *args], capture_output=True, text=True, timeout=120)
+    lines = [line for line in done.stderr.splitlines() if not line.startswith(("Warp ", "   "))]
+    assert done.returncode == 2, done.stderr
+    assert message in done.stderr
+    assert "Traceback" not in done.stderr, done.stderr
+    assert len(lines) == 1, done.stderr
