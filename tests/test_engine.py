@@ -299,6 +299,30 @@ def test_band_clamps_and_keeps_the_sign(device):
     assert np.all(np.abs(adf) <= band * (1 + 1e-6))
 
 
+def test_beyond_the_band_the_field_is_flat_in_both_modes(device):
+    """Where nothing lies within the band, either mode gives +-band, a zero normal, face -1 and a zero closest
+    point, also when the face was not asked for (a flat cell's rounding must not make a normal)."""
+    vertices, faces = meshes.load("spot")
+    diag = oracle.bbox_diagonal(vertices)
+    band = 0.02 * diag
+    field = DistanceField(vertices, faces, depth=5, band=band, device=device)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    points = np.random.default_rng(23).uniform(lo - 0.05 * diag, hi + 0.05 * diag, size=(3000, 3))
+    truth = oracle.signed_distance(points, vertices, faces)
+    cells = diag * 1.1 / 2**5  # a finest cell is at most this wide, so ADF is flat two cells past the band
+    far = np.abs(truth) > band + 2 * np.sqrt(3) * cells
+    assert far.sum() > 500
+    for mode in ("adf", "exact"):
+        result = field.query(points, mode=mode, outputs=ALL_OUTPUTS)
+        np.testing.assert_array_equal(np.abs(result.distance[far]), np.float32(band))
+        np.testing.assert_array_equal(result.normal[far], 0.0)
+        np.testing.assert_array_equal(result.face[far], -1)
+        np.testing.assert_array_equal(result.closest_point[far], 0.0)
+        alone = field.query(points, mode=mode, outputs=("closest_point",))
+        assert alone.face is None
+        np.testing.assert_array_equal(alone.closest_point, result.closest_point)
+
+
 def test_unsigned_field_for_open_sheet(device):
     vertices, faces = meshes.sheet()
     field = DistanceField(vertices, faces, depth=5, sign="none", device=device)

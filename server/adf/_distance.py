@@ -769,6 +769,9 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 grad = wp.vec3(0.0)
                 heaviest = float(-1.0)
                 nearest_corner = int(0)
+                # beyond the band: all eight corners clamped to the same +-band, so the field is flat here
+                first = corner_value[leaf_corner(tree, node, octant, 0)]
+                flat = band > 0.0 and wp.abs(first) >= band
                 for corner in range(8):
                     cx = float((corner >> 2) & 1)
                     cy = float((corner >> 1) & 1)
@@ -778,6 +781,8 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                     wz = cz * t[2] + (1.0 - cz) * (1.0 - t[2])
                     slot = leaf_corner(tree, node, octant, corner)
                     v = corner_value[slot]
+                    if v != first:
+                        flat = False
                     weight = wx * wy * wz
                     value += weight * v
                     grad += v * wp.vec3((2.0 * cx - 1.0) * wy * wz, (2.0 * cy - 1.0) * wx * wz, (2.0 * cz - 1.0) * wx * wy)
@@ -787,7 +792,9 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 grad = grad / (float(scale) * tree.cell)
                 length = wp.length(grad)
                 unit = wp.vec3(0.0)
-                if length > 0.0:
+                if flat:
+                    value = first  # not a weighted sum's rounding of it, and no gradient from that rounding
+                elif length > 0.0:
                     unit = grad / length
                 if outputs & _OUT_DISTANCE:
                     out_distance[i] = value
@@ -797,7 +804,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                     out_closest[i] = p - value * unit
                 if outputs & _OUT_FACE:
                     face = bvh.leaf_face[corner_leaf[nearest_corner]]
-                    if band > 0.0 and wp.abs(value) >= band:
+                    if flat or (band > 0.0 and wp.abs(value) >= band):
                         face = -1
                     out_face[i] = face
                 return

@@ -83,7 +83,8 @@ class QueryResult:
 
     distance: (P,) float32 signed distance, negative inside (unsigned when the sign is "none"); clamped to
         +-band when a band is set.
-    closest_point: (P, 3) float32 nearest surface point (adf mode: p - distance * normal).
+    closest_point: (P, 3) float32 nearest surface point (adf mode: p - distance * normal); (0, 0, 0) beyond
+        the band, where there is none.
     normal: (P, 3) float32 unit gradient of the field; zero where it is flat (beyond the band).
     face: (P,) int32 index of the nearest face; -1 beyond the band (adf mode: the face nearest the
         cell corner closest to p).
@@ -311,9 +312,13 @@ class DistanceField:
         result = QueryResult(frame=self._frame)
         shapes = {"distance": ((count,), np.float32), "closest_point": ((count, 3), np.float32),
                   "normal": ((count, 3), np.float32), "face": ((count,), np.int32)}
-        arrays = {name: np.empty(*shapes[name]) for name in names}
+        # beyond a band there is no closest point; the faces (-1 there) say where, also when not asked for
+        computed = names
+        if self._band is not None and "closest_point" in names and "face" not in names:
+            computed = (*names, "face")
+        arrays = {name: np.empty(*shapes[name]) for name in computed}
         bits = 0
-        for name in names:
+        for name in computed:
             bits |= OUTPUT_BITS[name]
         domain = self._domain
         tree = self._octree.view(domain.origin, domain.local_side)
@@ -344,10 +349,10 @@ class DistanceField:
             closest = arrays["closest_point"]
             _to_world_units(closest, domain.scale)
             closest += domain.centre.astype(np.float32)
-            if self._band is not None and "face" in arrays:
+            if self._band is not None:
                 closest[arrays["face"] < 0] = 0.0
-        for name, arr in arrays.items():
-            setattr(result, name, arr)
+        for name in names:
+            setattr(result, name, arrays[name])
         self._counters.queries += 1
         self._counters.query_points += count
         self._counters.last_query_ms = (time.perf_counter() - start_time) * 1e3
