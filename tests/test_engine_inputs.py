@@ -100,3 +100,19 @@ def test_slice_rejects_bad_requests(kwargs, message):
     args = {"axis": "x", "position": 0.0} | kwargs
     with pytest.raises(InvalidInputError, match=message):
         field.slice(args.pop("axis"), args.pop("position"), **args)
+
+
+def test_the_same_values_as_float32_or_float64_make_the_same_field(device):
+    """The domain is fitted in float64 whatever the input's dtype: float32 rounding of the bounding box's
+    centre and extent once gave a float32 mesh far from the origin another domain than its float64 copy."""
+    vertices, faces = meshes.load("torus")
+    single = (vertices + [12345.77, 12345.77, 12346.8]).astype(np.float32)
+    double = single.astype(np.float64)
+    a = DistanceField(single, faces, depth=5, device=device)
+    b = DistanceField(double, faces, depth=5, device=device)
+    assert a.info()["domain"] == b.info()["domain"]
+    points = double[::7] + 0.03 * np.ptp(double, axis=0)
+    diag = float(np.linalg.norm(np.ptp(double, axis=0)))
+    for mode in ("adf", "exact"):
+        np.testing.assert_allclose(a.query(points, mode=mode).distance, b.query(points, mode=mode).distance,
+                                   rtol=0, atol=1e-6 * diag)
