@@ -735,6 +735,31 @@ def test_auto_signs_parts_facing_both_ways_like_the_oracle(device):
             assert np.array_equal(np.sign(got), np.sign(truth[clear])), (case, mode)
 
 
+@pytest.mark.parametrize("sign", ["auto", "winding", "none"])
+def test_exact_normals_on_the_surface_are_the_faces(device, sign):
+    """Points on faces (within float32's rounding of them): the direction from the closest point is rounding
+    noise there, so the normal is the face's (outward for signed fields), not 80 degrees off as it was."""
+    vertices, faces = meshes.load("sphere")
+    rng = np.random.default_rng(31)
+    chosen = rng.integers(0, len(faces), 2000)
+    weights = rng.dirichlet([4.0, 4.0, 4.0], size=len(chosen))  # inside the faces, away from their edges
+    interior = weights.min(axis=1) > 0.05
+    a, b, c = (vertices[faces[chosen, k]].astype(np.float64) for k in range(3))
+    points = weights[:, :1] * a + weights[:, 1:2] * b + weights[:, 2:] * c
+    face_normal = np.cross(b - a, c - a)
+    face_normal /= np.linalg.norm(face_normal, axis=1, keepdims=True)
+    field = DistanceField(vertices, faces, depth=5, sign=sign, device=device)
+    result = field.query(points, mode="exact", outputs=("distance", "normal", "face"))
+    diag = oracle.bbox_diagonal(vertices)
+    assert np.all(np.abs(result.distance) < 1e-6 * diag)
+    same_face = interior & (result.face == chosen)
+    assert same_face.sum() > 1500
+    cosine = np.einsum("ij,ij->i", result.normal[same_face], face_normal[same_face])
+    if sign == "none":
+        cosine = np.abs(cosine)  # an unsigned field has no outward side
+    assert cosine.min() > 0.999, cosine.min()
+
+
 def test_a_band_below_what_float32_resolves_is_refused(device):
     vertices, faces = meshes.load("sphere")
     with pytest.raises(InvalidInputError, match="band must be at least"):

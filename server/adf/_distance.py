@@ -34,6 +34,7 @@ from badf.server.adf._geometry import (
 )
 from badf.server.adf._octree import OctreeView, leaf_corner, locate
 from badf.server.adf._sign import SIGN_PSEUDONORMAL, SIGN_WINDING, SignView, feature_normal, inside_by_pseudonormal, inside_by_winding
+from badf.server.adf._tolerances import SURFACE_SNAP
 
 # No fused multiply-adds in this module's kernels (nor in the point queries'): with them, the compiler may
 # round the same triangle arithmetic differently where it is inlined at two places, so a seed's distance
@@ -42,6 +43,8 @@ from badf.server.adf._sign import SIGN_PSEUDONORMAL, SIGN_WINDING, SignView, fea
 # of 12.7K corners of vlasic_samba, by at most 1.2e-7).
 EXACT_ROUNDING = {"fuse_fp": False}
 wp.set_module_options(EXACT_ROUNDING)
+
+_SURFACE_SNAP = wp.constant(SURFACE_SNAP)
 
 # Output selection bits of a point query.
 OUT_DISTANCE = 1
@@ -849,10 +852,11 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         if outputs & _OUT_DISTANCE:
             out_distance[i] = wp.where(inside, -d, d)
         if outputs & _OUT_NORMAL:
-            # gradient of the signed distance: away from the surface outside, towards it (outward) inside
+            # gradient of the signed distance: away from the surface outside, towards it (outward) inside;
+            # on the surface (within float32's rounding of it), the closest feature's normal
             n = wp.vec3(0.0)
             length = wp.length(offset)
-            if length > 0.0:
+            if length * inv_side > _SURFACE_SNAP:
                 n = offset / length
                 if inside:
                     n = -n

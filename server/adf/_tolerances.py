@@ -20,6 +20,11 @@ FEATURE_SNAP = 1.0e-5
 # three edges (a segment or a point); no face normal is formed from it.
 DEGENERATE_AREA = 1.0e-12
 
+# An exact query's normal is the direction from the closest point, except within this fraction of the domain's
+# side of the surface: there float32 rounding of the two points (about 6e-8 of the side) would swing that
+# direction by more than a few degrees, so the closest feature's normal (pseudonormal, or the face's) is used.
+SURFACE_SNAP = 1.0e-6
+
 # Fast winding number: a BVH node is replaced by its dipole when the point is farther from the node's
 # area-weighted centre than this many node radii (Barill et al. 2018 use 2).
 WINDING_FAR_FIELD = 2.0
