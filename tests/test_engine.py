@@ -784,6 +784,24 @@ def test_exact_normals_on_the_surface_are_the_faces(device, sign):
     assert cosine.min() > 0.999, cosine.min()
 
 
+def test_winding_signs_hold_beyond_the_domain_for_a_triangle_soup(device):
+    """Overlapping random triangles reach |w| > 1/2 outside their bounding box (and the domain around it):
+    such points were taken as outside without a winding number."""
+    rng = np.random.default_rng(0)
+    vertices = rng.random((3 * 258, 3))
+    faces = np.arange(len(vertices)).reshape(-1, 3)
+    field = DistanceField(vertices, faces, depth=4, sign="winding", device=device)
+    points = rng.random((3000, 3)) * 1.4 - 0.2
+    centre, half = np.array(field.info()["domain"]["centre"]), field.info()["domain"]["side"] / 2
+    beyond = np.any(np.abs(points - centre) > half, axis=1)
+    w = oracle.winding_number(points, vertices, faces)
+    clear = beyond & (np.abs(np.abs(w) - 0.5) > 0.1)  # the fast winding numbers are within 0.05 of the oracle
+    assert np.sum(clear & (np.abs(w) > 0.5)) >= 5  # the case this test is about
+    for mode in ("exact", "adf"):
+        got = field.query(points[clear], mode=mode).distance
+        np.testing.assert_array_equal(got < 0, np.abs(w[clear]) > 0.5)
+
+
 def test_a_band_below_what_float32_resolves_is_refused(device):
     vertices, faces = meshes.load("sphere")
     with pytest.raises(InvalidInputError, match="band must be at least"):

@@ -823,10 +823,13 @@ def _make_query_kernel(method: int) -> wp.Kernel:
             seed = spatial_seed(bvh, p, tree.origin, inv_side)
 
         leaf, best_sq, finished = _nearest_with_band(bvh, p, seed, band, UNLIMITED_VISITS)
-        # outside the domain (which holds the whole mesh) a point is outside the mesh
+        # outside the domain (which holds the whole mesh) a point is outside a closed mesh; winding numbers are
+        # taken there too, as a soup of overlapping triangles can reach |w| > 1/2 beyond its bounding box
         if leaf < 0:
             inside = False
-            if wp.static(pseudonormal or winding):
+            if wp.static(winding):
+                inside = inside_by_winding(bvh, p)
+            if wp.static(pseudonormal):
                 if in_domain:
                     inside = inside_by_winding(bvh, p)
             if outputs & _OUT_DISTANCE:
@@ -844,11 +847,11 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         offset = p - closest
         d = wp.sqrt(best_sq)
         inside = False
-        if in_domain:
-            if wp.static(pseudonormal):
+        if wp.static(winding):
+            inside = inside_by_winding(bvh, p)
+        if wp.static(pseudonormal):
+            if in_domain:
                 inside = inside_by_pseudonormal(sign, bvh, p, face, closest, feature)
-            if wp.static(winding):
-                inside = inside_by_winding(bvh, p)
         if outputs & _OUT_DISTANCE:
             out_distance[i] = wp.where(inside, -d, d)
         if outputs & _OUT_NORMAL:
