@@ -42,14 +42,14 @@ from badf.server.adf._geometry import (
     thread_fence,
     triangle_distance_sq,
 )
-from badf.server.adf._tolerances import PRUNE_SLACK, WINDING_FAR_FIELD
+from badf.server.adf._tolerances import BOX_SLACK, WINDING_FAR_FIELD
 
 # Triangle centroids are quantised to 2^10 cells per axis for the BVH order: a 30-bit code, placed at
 # bits 61..32 of the key, with the face index below it so every key is unique.
 BVH_CODE_LEVELS = 10
 _CODE_SHIFT = wp.constant(32)
 _FAR_FIELD = wp.constant(WINDING_FAR_FIELD)
-_PRUNE_SLACK = wp.constant(PRUNE_SLACK)
+_BOX_SLACK = wp.constant(BOX_SLACK)
 _INV_FOUR_PI = wp.constant(1.0 / (4.0 * math.pi))
 LEAF_SIZE = wp.constant(1)
 UNLIMITED_VISITS = wp.constant(2**31 - 1)
@@ -246,16 +246,6 @@ def _xyz(v: wp.vec4) -> wp.vec3:
 
 
 @wp.func
-def prune_limit(best_sq: float) -> float:
-    """The squared distance from which a box is pruned: (best + PRUNE_SLACK)^2, not best^2. A triangle's
-    distance and its box's are rounded differently (the box's can come out a few ulps above the triangle's),
-    so without the slack a box holding a triangle a rounding nearer than the bound could be pruned, and a
-    search would answer by where it started: frames with and without coherence differed in the last bits."""
-    reach = wp.sqrt(best_sq) + _PRUNE_SLACK
-    return reach * reach
-
-
-@wp.func
 def _nearest_in_range(bvh: BvhView, p: wp.vec3, first: int, count: int, best_leaf: int, best_sq: float):
     for leaf in range(first, first + count):
         a, b, c = leaf_triangle(bvh, leaf)
@@ -291,10 +281,9 @@ def nearest_in_subtree(bvh: BvhView, p: wp.vec3, root: int, best_leaf: int, best
     bounds[0] = 0.0
     count = int(1)
     visits = int(0)
-    limit = prune_limit(best_sq)
     while count > 0:
         count -= 1
-        if bounds[count] >= limit:
+        if bounds[count] >= best_sq:
             continue
         if visits == budget:
             return best_leaf, best_sq, False
@@ -318,17 +307,15 @@ def nearest_in_subtree(bvh: BvhView, p: wp.vec3, root: int, best_leaf: int, best
             near_small = lower_1[3] <= float(LEAF_SIZE)
             far_small = lower_0[3] <= float(LEAF_SIZE)
         # small subtrees first, the nearer one first, so the bound tightens before the far test
-        if near_small and d_near < limit:
+        if near_small and d_near < best_sq:
             best_leaf, best_sq = _nearest_in_range(bvh, p, bvh.slot_first[near], bvh.slot_count[near], best_leaf, best_sq)
-            limit = prune_limit(best_sq)
-        if far_small and d_far < limit:
+        if far_small and d_far < best_sq:
             best_leaf, best_sq = _nearest_in_range(bvh, p, bvh.slot_first[far], bvh.slot_count[far], best_leaf, best_sq)
-            limit = prune_limit(best_sq)
-        if not far_small and d_far < limit:
+        if not far_small and d_far < best_sq:
             nodes[count] = bvh.slot_child[far]
             bounds[count] = d_far
             count += 1
-        if not near_small and d_near < limit:
+        if not near_small and d_near < best_sq:
             nodes[count] = bvh.slot_child[near]
             bounds[count] = d_near
             count += 1
@@ -339,7 +326,7 @@ def nearest_in_subtree(bvh: BvhView, p: wp.vec3, root: int, best_leaf: int, best
 def nearest_in_slot(bvh: BvhView, p: wp.vec3, slot: int, best_leaf: int, best_sq: float):
     """Nearest leaf under the child held in `slot` (see BvhView), strictly closer than sqrt(best_sq)."""
     lower = load_vec4(bvh.slot_lower, slot)
-    if box_distance_sq(p, _xyz(lower), _xyz(load_vec4(bvh.slot_upper, slot))) >= prune_limit(best_sq):
+    if box_distance_sq(p, _xyz(lower), _xyz(load_vec4(bvh.slot_upper, slot))) >= best_sq:
         return best_leaf, best_sq
     if lower[3] <= float(LEAF_SIZE):
         return _nearest_in_range(bvh, p, bvh.slot_first[slot], bvh.slot_count[slot], best_leaf, best_sq)
@@ -627,8 +614,10 @@ def _refit(
     triangles[3 * k + 1] = wp.vec4(b[0], b[1], b[2], 0.0)
     triangles[3 * k + 2] = wp.vec4(c[0], c[1], c[2], 0.0)
     node = internal_count + k
-    lower = wp.min(wp.min(a, b), c)
-    upper = wp.max(wp.max(a, b), c)
+    # a leaf's box grows by BOX_SLACK on every side, so its rounded distance from a point stays below the
+    # triangle's, and no search prunes a triangle nearer than its bound (see BOX_SLACK)
+    lower = wp.min(wp.min(a, b), c) - wp.vec3(_BOX_SLACK)
+    upper = wp.max(wp.max(a, b), c) + wp.vec3(_BOX_SLACK)
     # Walk up; each node's box goes into its slot in the parent, and an internal node's winding moments
     # (see BvhView.node_moments) into their own place; the second child to arrive at a node merges both
     # (Karras 2012). Writers fence before counting their arrival and the merger reads its children from L2,

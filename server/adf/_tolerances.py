@@ -20,11 +20,11 @@ FEATURE_SNAP = 1.0e-5
 # three edges (a segment or a point); no face normal is formed from it.
 DEGENERATE_AREA = 1.0e-12
 
-# Searches prune a box only when it lies this much (in local units, where the domain's side is 0.7 to 1.4)
-# beyond the best distance so far: about 16 float32 ulps of the coordinates, above how far a box's rounded
-# distance can exceed its triangle's. So every search tests the triangle whose rounded distance is least,
-# wherever it starts (coherence or not), and the corner values do not depend on the start.
-PRUNE_SLACK = 2.0**-20
+# The BVH's leaf boxes are grown by this much on every side (local units, where the domain's side is 0.7 to
+# 1.4; about 16 float32 ulps of the coordinates). A box's rounded distance from a point could otherwise come
+# out a few ulps above its triangle's, so a search could prune a triangle nearer than its bound, and its
+# answer depended on where it started: with and without coherence, corner values differed in their last bits.
+BOX_SLACK = 2.0**-20
 
 # An exact query's normal is the direction from the closest point, except within this fraction of the domain's
 # side of the surface: there float32 rounding of the two points (about 6e-8 of the side) would swing that
