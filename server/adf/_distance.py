@@ -775,6 +775,16 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 # beyond the band: all eight corners clamped to the same +-band, so the field is flat here
                 first = corner_value[leaf_corner(tree, node, octant, 0)]
                 flat = band > 0.0 and wp.abs(first) >= band
+                # corners of both signs in a leaf the surface stays out of: an open mesh's winding number jumps
+                # there, across an opening, and no interpolation follows the jump, so such a point is answered
+                # exactly. The surface stays out of a leaf coarser than the finest level (every cell it touches
+                # is refined), one with a corner farther from it than the leaf's diagonal, and one whose
+                # corners are all farther than half of that (their empty balls cover the leaf).
+                diagonal = 1.7320508 * float(scale) * tree.cell
+                farthest = float(0.0)
+                nearest = float(3.0e38)
+                has_inside = False
+                has_outside = False
                 for corner in range(8):
                     cx = float((corner >> 2) & 1)
                     cy = float((corner >> 1) & 1)
@@ -786,6 +796,14 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                     v = corner_value[slot]
                     if v != first:
                         flat = False
+                    if wp.static(winding):
+                        if v < 0.0:
+                            has_inside = True
+                        else:
+                            has_outside = True
+                        if not (band > 0.0 and wp.abs(v) >= band):  # a clamped value bounds nothing
+                            farthest = wp.max(farthest, wp.abs(v))
+                        nearest = wp.min(nearest, wp.abs(v))
                     weight = wx * wy * wz
                     value += weight * v
                     grad += v * wp.vec3((2.0 * cx - 1.0) * wy * wz, (2.0 * cy - 1.0) * wx * wz, (2.0 * cz - 1.0) * wx * wy)
@@ -799,18 +817,20 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                     value = first  # not a weighted sum's rounding of it, and no gradient from that rounding
                 elif length > 0.0:
                     unit = grad / length
-                if outputs & _OUT_DISTANCE:
-                    out_distance[i] = value
-                if outputs & _OUT_NORMAL:
-                    out_normal[i] = unit
-                if outputs & _OUT_CLOSEST:
-                    out_closest[i] = p - value * unit
-                if outputs & _OUT_FACE:
-                    face = bvh.leaf_face[corner_leaf[nearest_corner]]
-                    if flat or (band > 0.0 and wp.abs(value) >= band):
-                        face = -1
-                    out_face[i] = face
-                return
+                clear = scale > 1 or farthest > diagonal or nearest > 0.5 * diagonal
+                if not (has_inside and has_outside and clear):
+                    if outputs & _OUT_DISTANCE:
+                        out_distance[i] = value
+                    if outputs & _OUT_NORMAL:
+                        out_normal[i] = unit
+                    if outputs & _OUT_CLOSEST:
+                        out_closest[i] = p - value * unit
+                    if outputs & _OUT_FACE:
+                        face = bvh.leaf_face[corner_leaf[nearest_corner]]
+                        if flat or (band > 0.0 and wp.abs(value) >= band):
+                            face = -1
+                        out_face[i] = face
+                    return
             # exact: start from the nearest of the faces recorded at the cell's corners
             best_sq = float(3.0e38)
             for corner in range(8):
