@@ -101,7 +101,7 @@ def float_rows(rows: st.SearchStrategy[int], columns: int = 3) -> st.SearchStrat
 @st.composite
 def object_options(draw) -> ObjectOptions:
     return ObjectOptions(
-        depth=draw(st.integers(0, 30)),
+        depth=draw(st.integers(1, 30)),
         sign=draw(st.sampled_from(SIGN_METHODS)),
         band=draw(st.none() | st.floats(1e-6, 1e6)),
         coherence=draw(st.booleans()),
