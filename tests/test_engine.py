@@ -346,6 +346,11 @@ def test_beyond_the_band_the_field_is_flat_in_both_modes(device):
         alone = field.query(points, mode=mode, outputs=("closest_point",))
         assert alone.face is None
         np.testing.assert_array_equal(alone.closest_point, result.closest_point)
+        # wherever a point reads as beyond the band (face -1), its normal is zero too, also at the lattice
+        # points of cells whose other corners lie within the band
+        positions = field.corner_samples()[0]
+        for probe in (result, field.query(positions, mode=mode, outputs=ALL_OUTPUTS)):
+            np.testing.assert_array_equal(probe.normal[probe.face < 0], 0.0)
 
 
 def test_unsigned_field_for_open_sheet(device):

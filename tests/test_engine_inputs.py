@@ -91,6 +91,13 @@ def test_empty_query_and_unrequested_outputs(device):
         ({"position": float("nan")}, "position must be finite"),
         ({"resolution": 0}, "resolution must be 1..2048"),
         ({"resolution": (10, 5000)}, "resolution must be 1..2048"),
+        ({"resolution": "16"}, r"resolution must be an int or \(cols, rows\) of ints"),
+        ({"resolution": (2.7, 3)}, r"resolution must be an int or \(cols, rows\) of ints"),
+        ({"resolution": (True, 4)}, r"resolution must be an int or \(cols, rows\) of ints"),
+        ({"resolution": True}, r"resolution must be an int or \(cols, rows\) of ints"),
+        ({"resolution": (4, 4, 4)}, r"resolution must be an int or \(cols, rows\) of ints"),
+        ({"position": "0.5"}, "position must be a number"),
+        ({"position": True}, "position must be a number"),
         ({"max_level": 9}, r"max_level must be an integer in 0..3"),
     ],
 )

@@ -157,6 +157,8 @@ def check_axis(axis) -> int:
 
 
 def check_finite_number(value, name: str) -> float:
+    if isinstance(value, (str, bytes, bool, np.bool_)):  # float("0.5") and float(True) would pass
+        raise InvalidInputError(f"{name} must be a number, got {value!r}")
     try:
         number = float(value)
     except (TypeError, ValueError):
@@ -168,14 +170,18 @@ def check_finite_number(value, name: str) -> float:
 
 def check_resolution(resolution, limit: int = 2048) -> tuple[int, int]:
     """(rows, cols) from an int (square) or a (cols, rows) pair, each 1..limit."""
-    pair = (resolution, resolution) if isinstance(resolution, (int, np.integer)) else resolution
-    try:
-        cols, rows = (int(x) for x in pair)
-    except (TypeError, ValueError):
-        raise InvalidInputError(f"resolution must be an int or (cols, rows), got {resolution!r}") from None
-    if isinstance(resolution, bool) or not (1 <= cols <= limit and 1 <= rows <= limit):
+    pair = (resolution, resolution) if _is_whole(resolution) else resolution
+    if not (isinstance(pair, (tuple, list, np.ndarray)) and len(pair) == 2 and all(_is_whole(x) for x in pair)):
+        raise InvalidInputError(f"resolution must be an int or (cols, rows) of ints, got {resolution!r}")
+    cols, rows = (int(x) for x in pair)
+    if not (1 <= cols <= limit and 1 <= rows <= limit):
         raise InvalidInputError(f"resolution must be 1..{limit} per side, got {resolution!r}")
     return rows, cols
+
+
+def _is_whole(value) -> bool:
+    """An integer, not a bool (True is an int to Python) and not a float that int() would truncate."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
 
 
 def check_level(level, depth: int) -> int:
