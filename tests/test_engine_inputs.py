@@ -123,3 +123,23 @@ def test_the_same_values_as_float32_or_float64_make_the_same_field(device):
     for mode in ("adf", "exact"):
         np.testing.assert_allclose(a.query(points, mode=mode).distance, b.query(points, mode=mode).distance,
                                    rtol=0, atol=1e-6 * diag)
+
+
+@pytest.mark.parametrize(("size", "offset"), [(1.0, 1.0001234e9), (1e-3, 1.2345678e6)])
+def test_a_small_mesh_far_from_the_origin_keeps_its_domain(device, size, offset):
+    """A float64 mesh small against float32's spacing where it lies: snapping the domain's centre to float32
+    once widened the domain by the rounding (18.4 instead of 2.4 for a unit sphere at 1e9), coarsening the
+    octree, and every identical frame moved the domain again."""
+    vertices, faces = meshes.load("sphere")
+    far = vertices.astype(np.float64) * size + [offset, -offset / 3, 0.0]
+    near = DistanceField(vertices.astype(np.float64) * size, faces, depth=5, device=device)
+    field = DistanceField(far, faces, depth=5, device=device)
+    assert field.info()["domain"]["side"] == near.info()["domain"]["side"]
+    for _ in range(3):
+        field.update(far)
+    assert field.stats()["domain_moves"] == 0
+    rng = np.random.default_rng(43)
+    offsets = rng.uniform(-1.2, 1.2, size=(500, 3)) * size
+    for mode in ("adf", "exact"):
+        np.testing.assert_allclose(field.query(offsets + [offset, -offset / 3, 0.0], mode=mode).distance,
+                                   near.query(offsets, mode=mode).distance, rtol=0, atol=1e-5 * size)

@@ -47,7 +47,7 @@ from badf.server.adf._sign import (
     encloses_volume,
     resolve_sign,
 )
-from badf.server.adf._tolerances import DOMAIN_MARGIN, FAR_POINT, MIN_BAND, QUERY_CHUNK, REDOMAIN_MIN_FILL
+from badf.server.adf._tolerances import CENTRE_SNAP, DOMAIN_MARGIN, FAR_POINT, MIN_BAND, QUERY_CHUNK, REDOMAIN_MIN_FILL
 
 log = logging.getLogger("badf.server")
 
@@ -101,32 +101,43 @@ class QueryResult:
 
 @dataclass(frozen=True)
 class _Domain:
-    """The cube the octree covers: centre (float64, exactly representable in float32) and side length.
+    """The cube the octree covers: centre (float64) and side length.
 
     The device works in local coordinates: (world - centre) * scale, where scale is the power of two nearest
     1 / side, so the domain's side is between 0.7 and 1.4 there whatever the mesh's size. Multiplying by a
     power of two is exact in floating point, so every distance is the world one times scale to the bit,
     while the kernels' squares and cubes of lengths stay far from float32's overflow and underflow (a
     triangle of edge 1e7 or 1e-7 would otherwise reach them).
+
+    The centre is snapped to a float32 number where that moves it by little against the side, so float32
+    frames and points can be recentred on the device in float32 (`recentres_float32`). A mesh small against
+    float32's spacing where it lies (1 unit at 1e9, 1e-3 at 1e6) keeps its float64 centre instead, and is
+    recentred on the host in float64: snapping would have widened its domain by the rounding, many times
+    its size, coarsening the octree and moving the domain every frame.
     """
 
     centre: np.ndarray
     side: float
     scale: float
+    float32_centre: bool = True
 
     @staticmethod
     def fit(lo: np.ndarray, hi: np.ndarray, previous: _Domain | None = None) -> _Domain:
         extent = float(np.max(hi - lo))
-        centre = ((lo.astype(np.float64) + hi.astype(np.float64)) / 2.0).astype(np.float32).astype(np.float64)
         if extent > 0.0:
             side = extent * (1.0 + 2.0 * DOMAIN_MARGIN)
         elif previous is not None:
             side = previous.side
         else:
             raise InvalidInputError("vertices must not all coincide: the mesh has zero extent")
-        # the centre's float32 rounding must not push the mesh out of the cube
-        side += 2.0 * float(np.max(np.abs(centre - (lo + hi) / 2.0)))
-        return _Domain(centre, side, math.ldexp(1.0, -round(math.log2(side))))
+        middle = (lo.astype(np.float64) + hi.astype(np.float64)) / 2.0
+        snapped = middle.astype(np.float32).astype(np.float64)
+        shift = float(np.max(np.abs(snapped - middle)))
+        if shift <= CENTRE_SNAP * side:
+            # the centre's float32 rounding must not push the mesh out of the cube
+            side += 2.0 * shift
+            return _Domain(snapped, side, math.ldexp(1.0, -round(math.log2(side))))
+        return _Domain(middle, side, math.ldexp(1.0, -round(math.log2(side))), float32_centre=False)
 
     def holds(self, lo: np.ndarray, hi: np.ndarray) -> bool:
         half = self.side / 2.0
@@ -134,17 +145,20 @@ class _Domain:
         return inside and float(np.max(hi - lo)) >= REDOMAIN_MIN_FILL * self.side
 
     def to_local(self, points: np.ndarray) -> np.ndarray:
-        """Local float32 coordinates of world points, recentred in their own precision (float64 stays exact)."""
-        offsets = points - self.centre.astype(points.dtype)
-        if not self.scale_fits_float32:
-            offsets = offsets.astype(np.float64)  # numpy would round the scale to float32 (inf)
+        """Local float32 coordinates of world points, recentred in their own precision (float64 stays exact;
+        float32 goes through float64 where the centre or the scale is not a float32 number)."""
+        if self.recentres_float32:
+            offsets = points - self.centre.astype(points.dtype)
+        else:
+            offsets = points.astype(np.float64) - self.centre  # numpy would round these to float32
         return np.ascontiguousarray(offsets * self.scale, dtype=np.float32)
 
     @property
-    def scale_fits_float32(self) -> bool:
-        """Whether the scale and its inverse are float32 numbers, so float32 arithmetic (numpy's, the device's)
-        can apply it. Not for a mesh smaller than about 1e-38 (scale above 2^127)."""
-        return _float32_holds(self.scale) and _float32_holds(1.0 / self.scale)
+    def recentres_float32(self) -> bool:
+        """Whether the centre, the scale and its inverse are float32 numbers, so float32 arithmetic (numpy's,
+        the device's) can recentre float32 points exactly as the host's float64 would round them. Not for a
+        mesh smaller than about 1e-38 (scale above 2^127), nor one with a float64 centre (see the class)."""
+        return self.float32_centre and _float32_holds(self.scale) and _float32_holds(1.0 / self.scale)
 
     @property
     def local_side(self) -> float:
@@ -287,7 +301,7 @@ class DistanceField:
             self._counters.domain_moves += 1
         # float32 frames are recentred on the device (the same float32 subtraction, without numpy's slow
         # (N, 3) broadcast); float64 ones on the host in float64, which keeps the precision far from the origin
-        recentre = v.dtype == np.float32 and self._domain.scale_fits_float32
+        recentre = v.dtype == np.float32 and self._domain.recentres_float32
         self._apply(v if recentre else self._domain.to_local(v), float(np.max(hi - lo)) * self._domain.scale,
                     domain_moved=moved, recentre=recentre)
         self._frame += 1
@@ -330,7 +344,7 @@ class DistanceField:
         band = domain.local_band(self._band)
         # float32 points are recentred on the device (the same float32 arithmetic); float64 ones on the host
         # in float64, which keeps the precision of points far from the origin
-        on_device = p.dtype == np.float32 and domain.scale_fits_float32
+        on_device = p.dtype == np.float32 and domain.recentres_float32
         far, beyond = _pull_far_points(p, domain)
         if far is not None:
             p, on_device = far, False  # already local

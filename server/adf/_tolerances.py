@@ -4,6 +4,10 @@
 # largest extent, so the octree holds values a little beyond the surface.
 DOMAIN_MARGIN = 0.1
 
+# The domain's centre is snapped to a float32 number (so float32 frames recentre on the device) only where
+# that moves it by at most this fraction of the side; else it stays float64 and frames recentre on the host.
+CENTRE_SNAP = 2.0**-12
+
 # A frame whose bounding box leaves the domain, or whose largest extent falls below this fraction of the
 # domain's side (the octree would be too coarse for it), moves the domain to fit the new frame.
 REDOMAIN_MIN_FILL = 1.0 / 8.0
