@@ -436,6 +436,27 @@ def test_slice_grid_and_crossing_cells(device):
     assert shallow.cell_level.max() <= 3 and len(shallow.cell_level) < len(cut.cell_level)
 
 
+@pytest.mark.parametrize("where", [-0.5, -0.25, 0.0, 0.125, 0.5])
+def test_slice_cells_on_cell_faces_tile_the_plane_once(device, where):
+    """Planes on cell faces (the centre, a quarter, an eighth) and on the domain's faces: the leaves reported
+    cover the plane exactly once. Float32 cell bounds reported both cells at a face, and dropped the top ones
+    at the domain's upper face (31% of the plane had no cell)."""
+    vertices, faces = meshes.load("sphere")
+    field = DistanceField(vertices, faces, depth=5, device=device)
+    centre, side = domain_of(field)
+    for axis in range(3):
+        cut = field.slice(axis, float(centre[axis] + where * side), resolution=4)
+        leaves = cut.cell_is_leaf
+        others = [a for a in range(3) if a != axis]
+        extent = (cut.cell_upper - cut.cell_lower)[leaves][:, others].astype(np.float64)
+        assert np.isclose(np.prod(extent, axis=1).sum(), side * side, rtol=1e-5), (axis, where)
+        # and the cells crossing it are the nodes that hold the plane's finest cell (the upper one on a face)
+        levels, cells = field.octree_cells()
+        finest = min(int(np.floor((where + 0.5) * 2**5)), 2**5 - 1)
+        holding = cells[:, axis] == finest >> (5 - levels)
+        assert np.array_equal(np.sort(cut.cell_level[~cut.cell_is_empty]), np.sort(levels[holding]))
+
+
 def test_fields_used_from_several_threads_answer_as_if_alone(device):
     """A worker serves each object from its own thread: concurrent updates and queries of different fields
     on one device give exactly the answers of the same calls made one after another."""

@@ -7,6 +7,8 @@ ones, surface cells at the finest level, and empty leaves), each with its level 
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,8 +74,14 @@ class SliceCells:
 
     def cells(self, node_keys: wp.array, child_mask: wp.array, internal_count: int, depth: int, axis: int,
               local_position: float, side: float, max_level: int):
-        """(lower, upper) local corners, levels, leaf and empty flags of the cells crossing the plane."""
+        """(lower, upper) local corners, levels, leaf and empty flags of the cells crossing the plane.
+
+        The plane is placed on the finest lattice in float64 here, and a cell crosses it when its index along
+        the axis holds the plane's finest cell: a plane on a face between two cells is in the upper one only,
+        and one on the domain's top face in the top cells (float32 cell bounds rounded both ways)."""
         b = self.buffers
+        lattice = (local_position / side + 0.5) * (1 << depth)
+        finest = min(math.floor(lattice), (1 << depth) - 1) if 0.0 <= lattice <= (1 << depth) else -1
         capacity = 8 * internal_count + 1
         lower = b.ensure("slice.lower", capacity, wp.vec3, headroom=True)
         upper = b.ensure("slice.upper", capacity, wp.vec3, headroom=True)
@@ -84,7 +92,7 @@ class SliceCells:
         wp.launch(
             _crossing_cells,
             dim=capacity,
-            inputs=[node_keys, child_mask, internal_count, depth, axis, local_position, side, max_level],
+            inputs=[node_keys, child_mask, internal_count, depth, axis, finest, side, max_level],
             outputs=[lower, upper, level, kind, count],
             device=self.device,
         )
@@ -101,7 +109,7 @@ def _crossing_cells(
     internal_count: int,
     depth: int,
     axis: int,
-    position: float,
+    finest: int,
     side: float,
     max_level: int,
     out_lower: wp.array(dtype=wp.vec3),
@@ -128,16 +136,13 @@ def _crossing_cells(
             kind = 2
         elif level == depth:
             kind = 1
-    if level > max_level:
+    # the plane lies in finest cell `finest` along the axis (-1: outside the domain)
+    if level > max_level or finest < 0 or cell[axis] != (finest >> (depth - level)):
         return
     size = side / float(1 << level)
     origin = wp.vec3(-0.5 * side)
     lower = origin + wp.vec3(float(cell[0]), float(cell[1]), float(cell[2])) * size
     upper = lower + wp.vec3(size)
-    top = 0.5 * side
-    crosses = lower[axis] <= position and (position < upper[axis] or (upper[axis] >= top and position <= top))
-    if not crosses:
-        return
     slot = wp.atomic_add(count, 0, 1)
     out_lower[slot] = lower
     out_upper[slot] = upper
