@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from badf.server.adf._buffers import DeviceBuffers, HostReadback, SharedScratch
+from badf.server.adf._buffers import DeviceBuffers, DeviceMemoryError, HostReadback, SharedScratch
 from badf.server.adf._hashset import UNLISTED, HashSet, HashSetView, set_insert
 
 
@@ -65,3 +65,14 @@ def test_a_scratch_take_lays_its_arrays_apart_and_over_the_last_take(device):
     e.fill_(3)
     f.fill_(4)
     assert np.all(e.numpy() == 3) and np.all(f.numpy() == 4)
+
+
+def test_a_buffer_past_warps_limits_is_a_clear_memory_error():
+    """Warp's array shapes are int32: a request past them (a depth-10 octree of a large surface needed a
+    2.5 GB scratch of bytes) is a DeviceMemoryError naming the buffer and what to change, before allocating."""
+    buffers = DeviceBuffers(wp.get_device("cpu"))
+    with pytest.raises(DeviceMemoryError, match=r"oct\.big needs 8192 MiB, more elements than a Warp array"):
+        buffers.ensure("oct.big", 2**31, wp.int32)
+    with pytest.raises(MemoryError, match="A lower depth"):
+        buffers.array("oct.big", 2**31, wp.uint8)
+    assert buffers.nbytes() == 0  # nothing was allocated or kept

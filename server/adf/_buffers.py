@@ -9,6 +9,10 @@ import warp as wp
 _GROWTH = 1.5
 
 
+class DeviceMemoryError(MemoryError):
+    """A buffer that the device could not hold (or that is larger than a Warp array may be)."""
+
+
 class DeviceBuffers:
     def __init__(self, device: wp.Device):
         self.device = device
@@ -16,7 +20,7 @@ class DeviceBuffers:
 
     def array(self, name: str, count: int, dtype) -> wp.array:
         """A zeroed array of exactly `count` elements (at least one), replacing any of that name."""
-        arr = wp.zeros(max(int(count), 1), dtype=dtype, device=self.device)
+        arr = self._allocate(name, count, dtype, zeroed=True)
         self._arrays[name] = arr
         return arr
 
@@ -27,9 +31,27 @@ class DeviceBuffers:
         arr = self._arrays.get(name)
         if arr is None or arr.shape[0] < count:
             grown = count if arr is None or not headroom else max(count, int(arr.shape[0] * _GROWTH))
-            arr = wp.empty(max(grown, 1), dtype=dtype, device=self.device)
+            arr = self._allocate(name, grown, dtype, zeroed=False)
             self._arrays[name] = arr
         return arr
+
+    def _allocate(self, name: str, count: int, dtype, *, zeroed: bool) -> wp.array:
+        """An array from Warp, or DeviceMemoryError naming what did not fit and how much the object holds."""
+        count = max(int(count), 1)
+        size = count * wp.types.type_size_in_bytes(dtype)
+        if count >= 2**31:  # Warp's shapes are int32
+            raise DeviceMemoryError(self._too_large(name, size, "more elements than a Warp array may hold (2^31)"))
+        try:
+            return (wp.zeros if zeroed else wp.empty)(count, dtype=dtype, device=self.device)
+        except RuntimeError as error:
+            if "alloc" not in str(error).lower():
+                raise
+            raise DeviceMemoryError(self._too_large(name, size, f"which the device could not allocate ({error})")) from None
+
+    def _too_large(self, name: str, size: int, why: str) -> str:
+        return (f"the field does not fit on {self.device}: {name} needs {size / 2**20:.0f} MiB, {why}; the object "
+                f"already holds {self.nbytes() / 2**20:.0f} MiB. A lower depth, halo=0, refine='centroid' or a band "
+                "makes the octree smaller")
 
     def nbytes(self) -> int:
         return sum(arr.capacity for arr in self._arrays.values())
@@ -92,7 +114,8 @@ class SharedScratch:
                 if self.device.is_cuda and self.device.is_capturing:
                     raise RuntimeError(f"{self.name}: a stage outgrew its scratch while a graph was captured")
                 wp.synchronize_device(self.device)
-            self._backing = self.buffers.ensure(self.name, end, wp.uint8)
+            # 16-byte elements, so the allocation may pass 2 GiB within Warp's int32 shapes (ends are aligned)
+            self._backing = self.buffers.ensure(self.name, end // 16, wp.vec4)
         base = self._backing.ptr
         return [wp.array(ptr=base + offset, dtype=dtype, shape=(max(int(count), 1),), device=self.device)
                 for offset, (count, dtype) in zip(offsets, layout)]
