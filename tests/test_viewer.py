@@ -162,6 +162,10 @@ def test_command_line_errors_are_told(monkeypatch: pytest.MonkeyPatch, capsys: p
     unreachable = parser.parse_args(["--connect", free_endpoint(), "--timeout", "1", "--port", "0"])
     assert viewer_cli.run(unreachable) == 2
     assert "cannot reach a Zenoh router" in capsys.readouterr().err
+    for host in ("192.0.2.1", "256.1.1.1"):  # not this machine's (a documentation address), and not an address
+        elsewhere = parser.parse_args(["--connect", free_endpoint(), "--host", host, "--port", "0"])
+        assert viewer_cli.run(elsewhere) == 2  # viser waited forever on these, deaf to Ctrl-C
+        assert f"cannot serve the page on host '{host}'" in capsys.readouterr().err
     monkeypatch.setitem(sys.modules, "viser", None)  # as if viser were not installed
     assert viewer_cli.run(unreachable) == 2
     assert "pip install 'badf[viewer]'" in capsys.readouterr().err
@@ -238,6 +242,33 @@ def test_the_viewer_switches_objects_and_outlives_a_deletion(served) -> None:
     finally:
         if "ball" in [info.name for info in client.objects()]:
             client.object("ball").delete()
+
+
+def test_the_viewer_follows_an_object_to_the_worker_it_moves_to() -> None:
+    """The shown object's worker leaves and a client registers the object again on another worker: the viewer
+    used to keep its handle on the gone worker, showing ObjectUnavailableError until another object was picked."""
+    from test_worker_plumbing import FACES, VERTICES, ThreadWorker
+
+    endpoint = free_endpoint()
+    with ThreadWorker(endpoint, worker_id="stays"), Client(endpoint, timeout=10) as client:
+        leaving: ThreadWorker | None = ThreadWorker("", worker_id="leaves", connect=(endpoint,)).__enter__()
+        try:
+            wait_until(lambda: len(client.workers()) == 2, what="both workers")
+            client.register("anchor", VERTICES, FACES, worker="stays")
+            mover = client.register("mover", VERTICES[:30], FACES[:2], worker="leaves")
+            settings = ViewerSettings(connect=endpoint, port=0, watch_without_browser=True, object_name="mover")
+            with Viewer(settings) as viewer:
+                wait_until(lambda: shows(viewer, "mover"), timeout=60, what="a slice of the mover")
+                leaving.__exit__(None, None, None)
+                leaving = None
+                wait_until(lambda: "Unavailable" in (viewer.status().problem or ""), timeout=60,
+                           what="the viewer to see the mover's worker go")  # fmt: skip
+                mover.reregister()
+                assert mover.worker == "stays"
+                wait_until(lambda: shows(viewer, "mover"), timeout=60, what="the mover again, on its new worker")
+        finally:
+            if leaving is not None:
+                leaving.__exit__(None, None, None)
 
 
 def shows(viewer: Viewer, name: str) -> bool:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
+import socket
 import threading
 import time
 from collections import deque
@@ -29,6 +30,7 @@ from badf.protocol import (
     BadfError,
     ObjectInfo,
     ObjectNotFoundError,
+    ObjectUnavailableError,
     SliceReply,
     WorkerBusyError,
     check_name,
@@ -172,6 +174,18 @@ class _Shown:
     scale: float | None = None
 
 
+def _check_host(host: str) -> None:
+    """ValueError unless a socket can listen on `host` (an address of this machine, or a name for one). viser
+    tries a thousand ports on an address it cannot bind, then waits forever for a server that never started
+    (and Ctrl-C cannot end that wait)."""
+    try:
+        family = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)[0][0]
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            probe.bind((host, 0))
+    except (OSError, UnicodeError) as error:
+        raise ValueError(f"cannot serve the page on host {host!r}: {error}") from None
+
+
 class Viewer:
     """A viser server showing the badf workers' objects. `start()` serves the page and starts the refresh
     thread; `close()` stops both and the Zenoh session (or use it as a context manager)."""
@@ -179,6 +193,7 @@ class Viewer:
     def __init__(self, settings: ViewerSettings) -> None:
         viser = _import_viser()
         self.settings = settings
+        _check_host(settings.host)  # viser waits forever on a host it cannot bind
         self._client = Client(
             settings.connect, namespace=settings.namespace, timeout=settings.timeout_s, config_file=settings.config_file
         )
@@ -402,7 +417,8 @@ class Viewer:
                 sleep_s = due.hold_back(0.05)
             except BadfError as error:
                 self._set_problem(f"{type(error).__name__}: {error.message}")
-                if isinstance(error, ObjectNotFoundError):
+                if isinstance(error, (ObjectNotFoundError, ObjectUnavailableError)):
+                    # gone, or its worker is: open it again by name, wherever it is registered now
                     self._forget_object()
                     due.listing = 0.0
                 sleep_s = due.hold_back(_RETRY_PERIOD_S)
