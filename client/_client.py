@@ -100,6 +100,8 @@ class Client:
         )
 
     def __enter__(self) -> Client:
+        if self._session.is_closed():
+            raise WorkerUnavailableError("this client is closed; open a new Client")
         return self
 
     def __exit__(self, *_exc: object) -> None:
@@ -376,8 +378,9 @@ class RemoteObject:
 
     @property
     def available(self) -> bool:
-        """False once this client has seen the object's worker go (its liveliness token); no round trip."""
-        return not self._client._worker_gone(self.worker)
+        """False once this client has seen the object's worker go (its liveliness token), or was closed; no
+        round trip."""
+        return not self._client._session.is_closed() and not self._client._worker_gone(self.worker)
 
     @property
     def vertices(self) -> np.ndarray | None:

@@ -8,7 +8,7 @@ import argparse
 import sys
 
 from badf.protocol import DEFAULT_ENDPOINT, BadfError
-from badf.server._cuda import NoCudaDeviceError, parse_gpus, visible_cuda_device_count
+from badf.server._cuda import NoCudaDeviceError, parse_gpus, requested_gpus, visible_cuda_device_count
 from badf.server._router import RouterSettings
 from badf.server._run import exit_now, run_gpu_workers, run_router, run_worker
 from badf.server._worker import WorkerSettings, default_worker_id
@@ -54,7 +54,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="this worker's id in key expressions (default: <host>-<pid>); with --gpus, the prefix of the ids",
     )  # fmt: skip
     parser.add_argument(
-        "--stats-interval", type=float, default=10.0, metavar="SECONDS", help="seconds between stats lines (default: 10)"
+        "--stats-interval", type=float, default=10.0, metavar="SECONDS",
+        help="seconds between stats lines (default: 10)",
     )
 
 
@@ -109,4 +110,5 @@ def gpus_from(args: argparse.Namespace) -> list[int]:
     """The GPU indices `--gpus` names, checked against the visible devices (NoCudaDeviceError if none)."""
     if args.mode != "router":
         raise ValueError("--mode applies to a single worker; with --gpus the workers join a router in this process")
+    requested_gpus(args.gpus)  # a malformed value is told as such, also where no GPU is
     return parse_gpus(args.gpus, visible_cuda_device_count())

@@ -57,14 +57,25 @@ def _check(status: int) -> None:
         raise NoCudaDeviceError(f"no CUDA device is usable: the CUDA driver failed with error {status}")
 
 
-def parse_gpus(text: str, visible: int) -> list[int]:
-    """`all`, or comma-separated device indices such as `0,2`, as a list of indices below `visible`."""
+def requested_gpus(text: str) -> list[int] | None:
+    """The device indices `--gpus` names (comma-separated, such as `0,2`), or None for `all`; ValueError for
+    anything else, before any device is looked for."""
     if text.strip() == "all":
-        return list(range(visible))
+        return None
     try:
         indices = [int(part) for part in text.split(",")]
     except ValueError:
         raise ValueError(f"--gpus takes 'all' or device indices such as 0,1; got {text!r}") from None
+    if any(index < 0 for index in indices):
+        raise ValueError(f"--gpus takes 'all' or device indices such as 0,1; got {text!r}")
+    return indices
+
+
+def parse_gpus(text: str, visible: int) -> list[int]:
+    """`all`, or comma-separated device indices such as `0,2`, as a list of indices below `visible`."""
+    indices = requested_gpus(text)
+    if indices is None:
+        return list(range(visible))
     for index in indices:
         if not 0 <= index < visible:
             raise ValueError(f"--gpus names device {index}, but only devices 0 to {visible - 1} are visible")

@@ -72,7 +72,8 @@ def test_gpus_take_all_or_indices() -> None:
     assert _cuda.parse_gpus("all", 2) == [0, 1]
     assert _cuda.parse_gpus("1", 2) == [1]
     assert _cuda.parse_gpus("0,1", 2) == [0, 1]
-    for wrong, match in (("2", "only devices 0 to 1"), ("0,0", "twice"), ("one", "'all' or device indices")):
+    for wrong, match in (("2", "only devices 0 to 1"), ("0,0", "twice"), ("one", "'all' or device indices"),
+                         ("-1", "'all' or device indices")):
         with pytest.raises(ValueError, match=match):
             _cuda.parse_gpus(wrong, 2)
 
@@ -84,6 +85,9 @@ def test_gpus_without_a_gpu_says_so(monkeypatch, capsys) -> None:
     monkeypatch.setattr(_cli, "visible_cuda_device_count", none_visible)
     assert _cli.run(serve_args("--gpus", "all")) == 2
     assert "no CUDA device is visible" in capsys.readouterr().err
+    for malformed in ("x", "", "-1"):  # the value is told wrong before any device is looked for
+        assert _cli.run(serve_args("--gpus", malformed)) == 2
+        assert f"--gpus takes 'all' or device indices such as 0,1; got '{malformed}'" in capsys.readouterr().err
     monkeypatch.setattr(_cli, "visible_cuda_device_count", lambda: 2)
     assert _cli.run(serve_args("--gpus", "0,5")) == 2
     assert "only devices 0 to 1" in capsys.readouterr().err

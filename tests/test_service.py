@@ -165,6 +165,20 @@ def test_one_output_by_name_and_streaming_after_delete(client: Client) -> None:
     remote.reregister()  # serves it again, and streaming works once more
     remote.stream(vertices + 0.01)
     assert remote.update(vertices) == remote.frame
+    remote.delete()
+
+
+def test_a_closed_client_says_so(shared_worker, shared_endpoint: str) -> None:
+    vertices, faces = meshes.load("spot")
+    client = Client(shared_endpoint, timeout=60)
+    remote = client.register("spot-closed", vertices, faces, depth=4)
+    assert remote.available
+    client.close()
+    assert not remote.available
+    with pytest.raises(WorkerUnavailableError, match="closed"):
+        client.__enter__()
+    with Client(shared_endpoint, timeout=60) as other:
+        other.object("spot-closed").delete()
 
 
 def test_streamed_sequence_answers_like_the_engine(client: Client) -> None:

@@ -29,9 +29,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--resolution", type=int, default=256, choices=RESOLUTIONS, help="slice grid, per side (default: 256)"
     )
     parser.add_argument("--up", default="+y", choices=UP_DIRECTIONS, help="the world's up direction (default: +y)")
-    parser.add_argument("--max-slice-hz", type=float, default=20.0, help="most slices asked for per second")
-    parser.add_argument("--max-mesh-hz", type=float, default=10.0, help="most mesh fetches per second")
-    parser.add_argument("--max-info-hz", type=float, default=20.0, help="most info polls (frame, stats) per second")
+    parser.add_argument("--max-slice-hz", type=float, default=20.0,
+                        help="most slices asked for per second (default: 20)")
+    parser.add_argument("--max-mesh-hz", type=float, default=10.0, help="most mesh fetches per second (default: 10)")
+    parser.add_argument("--max-info-hz", type=float, default=20.0,
+                        help="most info polls (frame, stats) per second (default: 20)")
     parser.add_argument("--timeout", type=float, default=10.0, metavar="SECONDS", help="longest wait for a worker")
 
 
