@@ -84,6 +84,9 @@ def _role(name: str) -> str:
     return "scratch"
 
 
+_SCRATCH_ELEMENT = 16  # bytes: a shared scratch is an array of wp.vec4
+
+
 class SharedScratch:
     """One allocation that the stages of a frame lay their short-lived arrays over, one stage after another.
 
@@ -109,13 +112,13 @@ class SharedScratch:
         for count, dtype in layout:
             offsets.append(end)
             end += -(-max(int(count), 1) * wp.types.type_size_in_bytes(dtype) // self._ALIGN) * self._ALIGN
-        if self._backing is None or self._backing.shape[0] < end:
+        if self._backing is None or self._backing.shape[0] * _SCRATCH_ELEMENT < end:
             if self._backing is not None:
                 if self.device.is_cuda and self.device.is_capturing:
                     raise RuntimeError(f"{self.name}: a stage outgrew its scratch while a graph was captured")
                 wp.synchronize_device(self.device)
             # 16-byte elements, so the allocation may pass 2 GiB within Warp's int32 shapes (ends are aligned)
-            self._backing = self.buffers.ensure(self.name, end // 16, wp.vec4)
+            self._backing = self.buffers.ensure(self.name, end // _SCRATCH_ELEMENT, wp.vec4)
         base = self._backing.ptr
         return [wp.array(ptr=base + offset, dtype=dtype, shape=(max(int(count), 1),), device=self.device)
                 for offset, (count, dtype) in zip(offsets, layout)]
