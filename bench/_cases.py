@@ -617,7 +617,6 @@ def stability_cases(*, large_batch: int = _LARGE_BATCH) -> list[StabilityCase]:
     return cases
 
 
-# Cases the engine does not meet yet, with why; the tests mark them xfail(strict) and the benchmark says so.
-# Cases the engine does not meet yet, by name, with the reason (the tests mark them xfail strict). The
-# collapsed frame was one until the engine re-chose the sign per frame (fixed on 2026-11-21).
+# Cases the engine does not meet yet, by name, with the reason: the tests mark them xfail(strict) and the
+# benchmark says so. The collapsed frame was one until the engine re-chose the sign per frame (2026-11-21).
 KNOWN_ENGINE_BUGS: dict[str, str] = {}
