@@ -94,10 +94,11 @@ def refuse(query: zenoh.Query, error: BadfError) -> None:
 
 @contextmanager
 def engine_errors() -> Iterator[None]:
-    """The engine's InvalidInputError (a ValueError) becomes RejectedInputError with the engine's message."""
+    """The engine's InvalidInputError (a ValueError) and DeviceMemoryError (a request larger than the device
+    holds) become RejectedInputError with the engine's message."""
     try:
         yield
     except BadfError:
         raise
-    except ValueError as error:
+    except (ValueError, MemoryError) as error:
         raise RejectedInputError(str(error)) from None

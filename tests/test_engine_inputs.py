@@ -143,3 +143,33 @@ def test_a_small_mesh_far_from_the_origin_keeps_its_domain(device, size, offset)
     for mode in ("adf", "exact"):
         np.testing.assert_allclose(field.query(offsets + [offset, -offset / 3, 0.0], mode=mode).distance,
                                    near.query(offsets, mode=mode).distance, rtol=0, atol=1e-5 * size)
+
+
+def test_an_update_that_fails_on_the_way_leaves_no_wrong_answers(device, monkeypatch):
+    """Valid input that fails inside the pipeline (here an allocation the device refuses) may leave the buffers
+    half this frame and half the last. Queries then answered wrongly (1.0 off on a unit sphere); now they raise
+    FieldUnavailableError until an update goes through, rebuilt in full."""
+    from badf.server.adf import DeviceMemoryError, FieldUnavailableError
+    from badf.server.adf._buffers import DeviceBuffers
+
+    vertices, faces = meshes.load("sphere")
+    field = DistanceField(vertices, faces, depth=5, device=device)
+    wrinkled = vertices * (1.0 + 0.3 * np.sin(9.0 * vertices[:, :1]) * np.cos(7.0 * vertices[:, 1:2]))
+
+    def refused(self, name, count, dtype, *, zeroed):
+        raise DeviceMemoryError(f"the device could not allocate {name} (simulated)")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(DeviceBuffers, "_allocate", refused)
+        with pytest.raises(MemoryError, match="simulated"):
+            field.update(wrinkled * 3.0)  # a larger frame: the domain moves and buffers grow
+    points = np.random.default_rng(47).uniform(-1.5, 1.5, size=(300, 3))
+    for ask in (lambda: field.query(points), lambda: field.query(points, mode="exact"), lambda: field.slice("x", 0.0)):
+        with pytest.raises(FieldUnavailableError, match="the next update failed"):
+            ask()
+    assert field.frame == 0 and "simulated" in field.info()["failed_update"]
+    assert field.update(wrinkled) == 1 and field.info()["failed_update"] is None
+    fresh = DistanceField(wrinkled, faces, depth=5, device=device)
+    for mode in ("adf", "exact"):
+        np.testing.assert_allclose(field.query(points, mode=mode).distance, fresh.query(points, mode=mode).distance,
+                                   rtol=0, atol=1e-6)

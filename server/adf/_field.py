@@ -78,6 +78,11 @@ QueryMode = Literal["adf", "exact"]
 QueryOutput = Literal["distance", "closest_point", "normal", "face"]
 
 
+class FieldUnavailableError(RuntimeError):
+    """An update failed after its input was checked (out of device memory, say): until one succeeds, the
+    object has no consistent field to answer from."""
+
+
 @dataclass
 class QueryResult:
     """Answers for P points; only the outputs asked for are filled, the others are None.
@@ -273,6 +278,7 @@ class DistanceField:
         self._report = wp.zeros(64, dtype=wp.int32, device="cpu", pinned=self._device.is_cuda)
         self._report_sizes: list[int] = []
         self._staging = wp.empty(vertex_count, dtype=wp.vec3, device="cpu", pinned=self._device.is_cuda)
+        self._failed_update: str | None = None  # why the last update failed after its input was checked
         self._planned = False  # whether the next frame may be planned (once a frame has been measured)
         self._graph = None  # (key, graph, stage names, report sizes) of the captured planned frame
         self._graph_candidate = None  # key of the last planned frame run eagerly
@@ -295,15 +301,24 @@ class DistanceField:
         """
         v = as_vertices(vertices, expected_count=self._vertex_count)
         lo, hi = bounds(v)
-        moved = not self._domain.holds(lo, hi)
+        moved = self._failed_update is not None or not self._domain.holds(lo, hi)
         if moved:
             self._domain = _Domain.fit(lo, hi, previous=self._domain)
             self._counters.domain_moves += 1
         # float32 frames are recentred on the device (the same float32 subtraction, without numpy's slow
         # (N, 3) broadcast); float64 ones on the host in float64, which keeps the precision far from the origin
         recentre = v.dtype == np.float32 and self._domain.recentres_float32
-        self._apply(v if recentre else self._domain.to_local(v), float(np.max(hi - lo)) * self._domain.scale,
-                    domain_moved=moved, recentre=recentre)
+        try:
+            self._apply(v if recentre else self._domain.to_local(v), float(np.max(hi - lo)) * self._domain.scale,
+                        domain_moved=moved, recentre=recentre)
+        except BaseException as error:
+            # Valid input that failed on the way (out of device memory, a device fault): the buffers may hold
+            # part of this frame and part of the last, so the object answers nothing until a frame goes
+            # through, and that frame is rebuilt in full, measured, without a graph.
+            self._failed_update = f"{type(error).__name__}: {error}"
+            self._planned, self._graph, self._graph_candidate = False, None, None
+            raise
+        self._failed_update = None
         self._frame += 1
         self._counters.updates += 1
         return self._frame
@@ -322,6 +337,7 @@ class DistanceField:
         BVH closest-point search bounded by the faces recorded at the point's cell corners. Batches larger
         than QUERY_CHUNK points are processed in chunks, so device memory stays bounded.
         """
+        self._check_field()
         mode = check_choice(mode, "mode", QUERY_MODES)
         names = check_outputs(outputs)
         p = as_points(points)
@@ -390,6 +406,7 @@ class DistanceField:
         resolution: columns x rows of the distance grid (an int for a square grid), each 1..2048.
         max_level: leave out cells deeper than this level (None: all, down to the finest).
         """
+        self._check_field()
         axis_index = check_axis(axis)
         position = check_finite_number(position, "position")
         rows, cols = check_resolution(resolution)
@@ -417,6 +434,13 @@ class DistanceField:
     def frame(self) -> int:
         return self._frame
 
+    def _check_field(self) -> None:
+        if self._failed_update is not None:
+            raise FieldUnavailableError(
+                f"the field of frame {self._frame} is gone: the next update failed ({self._failed_update}); "
+                "update the object again, which rebuilds it in full"
+            )
+
     @property
     def vertex_count(self) -> int:
         return self._vertex_count
@@ -443,6 +467,7 @@ class DistanceField:
             "coherence": self._coherence,
             "refine": self._refine,
             "halo": self._halo,
+            "failed_update": self._failed_update,
             "orientation_flipped": self._flipped,
             "parts_face_both_ways": self._parts_disagree,
             "topology": self._topology.summary(),
