@@ -43,8 +43,8 @@ from badf.server.adf._sign import (
     Pseudonormals,
     analyse_topology,
     components_disagree,
-    enclosed_volume,
     encloses_volume,
+    face_volumes,
     resolve_sign,
 )
 from badf.server.adf._tolerances import CENTRE_SNAP, DOMAIN_MARGIN, FAR_POINT, MIN_BAND, QUERY_CHUNK, REDOMAIN_MIN_FILL
@@ -135,14 +135,14 @@ class _Domain:
             side = previous.side
         else:
             raise InvalidInputError("vertices must not all coincide: the mesh has zero extent")
-        middle = (lo.astype(np.float64) + hi.astype(np.float64)) / 2.0
-        snapped = middle.astype(np.float32).astype(np.float64)
-        shift = float(np.max(np.abs(snapped - middle)))
-        if shift <= CENTRE_SNAP * side:
-            # the centre's float32 rounding must not push the mesh out of the cube
-            side += 2.0 * shift
-            return _Domain(snapped, side, math.ldexp(1.0, -round(math.log2(side))))
-        return _Domain(middle, side, math.ldexp(1.0, -round(math.log2(side))), float32_centre=False)
+        centre = (lo.astype(np.float64) + hi.astype(np.float64)) / 2.0
+        snapped = centre.astype(np.float32).astype(np.float64)
+        shift = float(np.max(np.abs(snapped - centre)))
+        float32_centre = shift <= CENTRE_SNAP * side
+        if float32_centre:
+            centre = snapped
+            side += 2.0 * shift  # the centre's float32 rounding must not push the mesh out of the cube
+        return _Domain(centre, side, math.ldexp(1.0, -round(math.log2(side))), float32_centre)
 
     def holds(self, lo: np.ndarray, hi: np.ndarray) -> bool:
         half = self.side / 2.0
@@ -247,10 +247,11 @@ class DistanceField:
         local = self._domain.to_local(v)
         extent = float(np.max(hi - lo)) * self._domain.scale  # in local units, as everything on the device
         self._topology = analyse_topology(f, v)
-        volume, area = enclosed_volume(local, f)
+        face_volume, face_area = face_volumes(local, f)
+        volume, area = float(face_volume.sum()), float(face_area.sum())
         solid = self._topology.closed and encloses_volume(volume, area, extent)
         # a part inside out beside the others (or a cavity) is signed by winding numbers (components_disagree)
-        self._parts_disagree = bool(solid and components_disagree(local, f, self._topology, extent))
+        self._parts_disagree = bool(solid and components_disagree(face_volume, face_area, self._topology, extent))
         solid = solid and not self._parts_disagree
         self._flipped = bool(solid and volume < 0.0)
         if self._flipped:

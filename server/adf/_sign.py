@@ -134,36 +134,34 @@ def _weld(vertices: np.ndarray) -> tuple[np.ndarray, int]:
     return welded_id, int(np.count_nonzero(new))
 
 
-def enclosed_volume(vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float]:
-    """(signed volume, surface area) in float64; the volume is positive for outward-facing faces."""
+def face_volumes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each face's signed volume (of its tetrahedron with the origin) and area, in float64. Summed over a
+    closed mesh they give its enclosed volume, positive for outward-facing faces, and its surface area."""
     v = vertices.astype(np.float64)
     a, b, c = v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]]
-    volume = float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
-    area = float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum() / 2.0)
-    return volume, area
+    return np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0, np.linalg.norm(np.cross(b - a, c - a), axis=1) / 2.0
 
 
-def encloses_volume(volume: float, area: float, extent: float) -> bool:
+def encloses_volume(volume, area, extent: float):
+    """Whether a volume is clearly more than none for its area (floats, or arrays of them elementwise)."""
     return abs(volume) > MIN_ENCLOSED_VOLUME * area * extent
 
 
-def components_disagree(vertices: np.ndarray, faces: np.ndarray, topology: Topology, extent: float) -> bool:
-    """Whether a closed mesh has connected parts that enclose volume with opposite orientations.
+def components_disagree(face_volume: np.ndarray, face_area: np.ndarray, topology: Topology, extent: float) -> bool:
+    """Whether a closed mesh has connected parts that enclose volume with opposite orientations, from its
+    faces' volumes and areas (`face_volumes`).
 
     A part turned inside out beside the others has winding number -1 within, which the winding-number sign
     counts as inside, while its pseudonormals say outside; a cavity (an inward part nested in an outward
     one) is outside either way. Telling the two apart takes the parts' nesting, so for any such mesh `auto`
     takes winding numbers, which are right for both. Parts that enclose (next to) nothing count for neither.
     """
-    if len(faces) == 0:
+    if len(face_volume) == 0:
         return False
     label = _vertex_components(topology.welded_faces, topology.welded_count)[topology.welded_faces[:, 0]]
-    v = vertices.astype(np.float64)
-    a, b, c = v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]]
     count = int(label.max()) + 1
-    volume = np.bincount(label, weights=np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0, minlength=count)
-    area = np.bincount(label, weights=np.linalg.norm(np.cross(b - a, c - a), axis=1) / 2.0, minlength=count)
-    solid = np.abs(volume) > MIN_ENCLOSED_VOLUME * area * extent
+    volume = np.bincount(label, weights=face_volume, minlength=count)
+    solid = encloses_volume(volume, np.bincount(label, weights=face_area, minlength=count), extent)
     return bool(np.any(solid & (volume > 0.0)) and np.any(solid & (volume < 0.0)))
 
 
