@@ -151,7 +151,7 @@ def check_flag(value, name: str) -> bool:
 def check_axis(axis) -> int:
     if isinstance(axis, str) and axis in ("x", "y", "z"):
         return "xyz".index(axis)
-    if isinstance(axis, (int, np.integer)) and not isinstance(axis, bool) and 0 <= int(axis) <= 2:
+    if _is_whole(axis) and 0 <= int(axis) <= 2:
         return int(axis)
     raise InvalidInputError(f"axis must be 'x', 'y' or 'z' (or 0, 1, 2), got {axis!r}")
 
@@ -185,6 +185,6 @@ def _is_whole(value) -> bool:
 
 
 def check_level(level, depth: int) -> int:
-    if isinstance(level, bool) or not isinstance(level, (int, np.integer)) or not 0 <= int(level) <= depth:
+    if not _is_whole(level) or not 0 <= int(level) <= depth:
         raise InvalidInputError(f"max_level must be an integer in 0..{depth}, got {level!r}")
     return int(level)
