@@ -813,10 +813,10 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 grad = grad / (float(scale) * tree.cell)
                 length = wp.length(grad)
                 unit = wp.vec3(0.0)
-                beyond = band > 0.0 and wp.abs(value) >= band  # at the band: no face, no closest point, no normal
                 if flat:
                     value = first  # not a weighted sum's rounding of it, and no gradient from that rounding
-                elif length > 0.0 and not beyond:
+                beyond = band > 0.0 and wp.abs(value) >= band  # at the band: no face, no closest point, no normal
+                if length > 0.0 and not beyond:
                     unit = grad / length
                 clear = scale > 1 or farthest > diagonal or nearest > 0.5 * diagonal
                 if not (has_inside and has_outside and clear):
@@ -828,7 +828,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                         out_closest[i] = p - value * unit
                     if outputs & _OUT_FACE:
                         face = bvh.leaf_face[corner_leaf[nearest_corner]]
-                        if flat or beyond:
+                        if beyond:
                             face = -1
                         out_face[i] = face
                     return
