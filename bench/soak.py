@@ -48,7 +48,7 @@ class SoakSettings:
     clients: int = 8
     objects_per_client: int = 4
     seconds: float = 60.0
-    warm_up_s: float | None = None  # default: a quarter of `seconds`, at least 5 s
+    warm_up_s: float | None = None  # default: a quarter of `seconds`, at least 5 s; and every client's first round
     device: str = "cpu"
     depth: int = 4
     grid: int = 8  # each cube face is split into grid x grid quads: 12 grid^2 triangles
@@ -126,7 +126,7 @@ def expected_probe_distance(frame: int) -> float:
 # --- a client process ---------------------------------------------------------------------------------
 
 
-def _client_main(endpoint: str, index: int, settings: SoakSettings, barrier, results) -> None:
+def _client_main(endpoint: str, index: int, settings: SoakSettings, barrier, warm, results) -> None:
     """Register, wait for everyone, run rounds until the time or the round count is up, check, report."""
     from badf.client import Client
     from badf.protocol import BadfError
@@ -159,6 +159,8 @@ def _client_main(endpoint: str, index: int, settings: SoakSettings, barrier, res
                 except BadfError as error:
                     _count_error(tally, error, "peer")
                 tally.rounds += 1
+                if tally.rounds == 1:
+                    warm.release()  # every object of this client has had each kind of request once
             for obj in objects:
                 _final_check(obj, sent[obj.name], tally)
     except BadfError as error:  # registration or the final check could not be made
@@ -289,12 +291,13 @@ def run_soak(settings: SoakSettings, *, log=print) -> SoakReport:
         worker_id="soak", listen=(endpoint,), device=settings.device, stats_interval_s=max(5.0, settings.seconds / 6)
     )
     barrier = _SPAWN.Barrier(settings.clients + 1)
+    warm = _SPAWN.Semaphore(0)  # released by each client after its first round
     results = _SPAWN.Queue()
     with worker_process(worker_settings, start_timeout_s=settings.start_timeout_s) as worker:
         sampler = _RssSampler(worker.pid)
         sampler.start()
         clients = [
-            _SPAWN.Process(target=_client_main, args=(endpoint, index, settings, barrier, results), daemon=True)
+            _SPAWN.Process(target=_client_main, args=(endpoint, index, settings, barrier, warm, results), daemon=True)
             for index in range(settings.clients)
         ]
         for process in clients:
@@ -311,6 +314,8 @@ def run_soak(settings: SoakSettings, *, log=print) -> SoakReport:
                 rss_registered = sampler.latest()
                 log(f"soak: {settings.clients} clients x {settings.objects_per_client} objects, {settings.seconds:g} s")
                 _wait(started + settings.warm_up, clients)
+                if not _wait_for_first_rounds(warm, settings.clients, started + settings.seconds / 2):
+                    log("soak: the warm-up ended at half the run, before every client's first round")
                 rss_warm = sampler.latest()
                 sampler.mark_warm_up_end()
                 device_warm = _device_bytes(monitor)
@@ -341,6 +346,17 @@ def _wait(until: float, clients: list) -> None:
     """Until the monotonic time `until`, or until every client has exited (then the run is over early)."""
     while time.monotonic() < until and any(process.is_alive() for process in clients):
         time.sleep(min(0.2, max(0.0, until - time.monotonic())))
+
+
+def _wait_for_first_rounds(warm, clients: int, until: float) -> bool:
+    """Until every client has finished its first round, or the monotonic time `until`; whether they all
+    had. A round's first slice and ADF query size the object's query buffers, so memory is compared only
+    after every object's (a client slowed at the start once finished it after a 5 s warm-up, and its
+    object's first slice read as 143,652 device bytes of growth)."""
+    for _ in range(clients):
+        if not warm.acquire(timeout=max(0.0, until - time.monotonic())):
+            return False
+    return True
 
 
 def _collect(results, clients: list, *, deadline: float) -> list[dict]:
@@ -472,7 +488,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--clients", type=int, default=defaults.clients, help="client processes (default 8)")
     parser.add_argument("--objects", type=int, default=defaults.objects_per_client, help="objects per client (4)")
     parser.add_argument("--seconds", type=float, default=defaults.seconds, help="how long the clients run (60)")
-    parser.add_argument("--warm-up", type=float, default=None, help="seconds before memory is compared (a quarter of --seconds, at least 5)")
+    parser.add_argument("--warm-up", type=float, default=None, help="seconds before memory is compared (a quarter of --seconds, at least 5; "
+                        "and until every client has finished a round, up to half the run)")
     parser.add_argument("--device", default=defaults.device, help="the worker's device: cpu, cuda:0, ... (cpu)")
     parser.add_argument("--depth", type=int, default=defaults.depth, help="octree depth of every object (4)")
     parser.add_argument("--grid", type=int, default=defaults.grid, help="cube faces split grid x grid (8)")
