@@ -19,7 +19,8 @@ import numpy as np
 
 from badf.bench import _oracle as oracle
 from badf.bench import _tolerances as tol
-from badf.bench._common import find_mesh, load_npz
+from badf.bench._common import find_mesh
+from badf.server._mesh_files import read_mesh
 
 ALL_OUTPUTS = ("distance", "closest_point", "normal", "face")
 
@@ -127,7 +128,7 @@ def boxes_sharing_an_edge() -> tuple[np.ndarray, np.ndarray]:
 
 def shared_mesh(name: str) -> tuple[np.ndarray, np.ndarray]:
     """A mesh of the shared data set by name; the first frame of a sequence."""
-    return load_npz(find_mesh(name))
+    return read_mesh(find_mesh(name))
 
 
 # -- points ---------------------------------------------------------------------------------------------

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import sys
+
+from badf.server._mesh_files import MeshFileError
 
 _BENCHMARKS = {
     "engine": ("badf.bench.engine", "per-stage build/update times, memory, and the dense-grid baseline"),
@@ -26,4 +29,8 @@ def run(args: argparse.Namespace) -> int:
     module = importlib.import_module(_BENCHMARKS[args.name][0])
     sub = argparse.ArgumentParser(prog=f"badf bench {args.name}", description=_BENCHMARKS[args.name][1])
     module.add_arguments(sub)
-    return int(module.run(sub.parse_args(args.rest)) or 0)
+    try:
+        return int(module.run(sub.parse_args(args.rest)) or 0)
+    except MeshFileError as error:
+        print(f"badf bench {args.name}: {error}", file=sys.stderr)
+        return 2

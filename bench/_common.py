@@ -1,4 +1,4 @@
-"""What the benchmarks share: loading meshes, a smooth deformation for frames, tables, device names."""
+"""What the benchmarks share: finding meshes, a smooth deformation for frames, tables, device names."""
 
 from __future__ import annotations
 
@@ -7,15 +7,6 @@ import os
 import pathlib
 
 import numpy as np
-
-
-def load_npz(path: str | pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices float32 (N, 3), faces int32 (M, 3)) of a mesh file; the first frame of a sequence."""
-    data = np.load(path)
-    vertices = data["vertices"]
-    if vertices.ndim == 3:
-        vertices = vertices[0]
-    return np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(data["faces"], np.int32)
 
 
 # The repository's root when running from a checkout (an editable install).

@@ -17,7 +17,8 @@ import time
 
 import numpy as np
 
-from badf.bench._common import bench_device_name, deform, load_npz, print_table, start_warp, timestamp
+from badf.bench._common import bench_device_name, deform, print_table, start_warp, timestamp
+from badf.server._mesh_files import MESH_HELP, read_mesh
 
 
 def _median(values):
@@ -528,7 +529,7 @@ def _write_part(args: argparse.Namespace, benchmark: str, device: str, faces, re
 
 def run(args: argparse.Namespace) -> int:
     device = start_warp(args.device)
-    vertices, faces = load_npz(args.mesh)
+    vertices, faces = read_mesh(args.mesh)
     repeat = args.repeat
     if args.kernels:
         profile = measure_kernels(vertices, faces, depth=args.depth, device=device, repeat=repeat)
@@ -640,7 +641,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--mesh", required=True, help="a .npz with vertices (N, 3) and faces (M, 3)")
+    parser.add_argument("--mesh", required=True, help=MESH_HELP)
     parser.add_argument("--device", default=None, help="cpu, cuda:0, ... (default: the first GPU, else cpu)")
     parser.add_argument("--depth", type=int, default=7, help="octree depth of the main configuration")
     parser.add_argument("--repeat", type=int, default=20, help="timed repeats per measurement")

@@ -34,7 +34,8 @@ from typing import Any
 
 import numpy as np
 
-from badf.bench._common import deform, fill_sized_defaults, load_npz, print_table, timestamp
+from badf.bench._common import deform, fill_sized_defaults, print_table, timestamp
+from badf.server._mesh_files import MESH_HELP, read_mesh
 
 _SPAWN = multiprocessing.get_context("spawn")
 _FRAME_COUNT = 16
@@ -43,7 +44,7 @@ _SMALL = {"clients": "2,4", "points": 4096, "seconds": 4.0, "depth": 5, "warmup"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--mesh", required=True, help="a .npz with vertices (N, 3) and faces (M, 3)")
+    parser.add_argument("--mesh", required=True, help=MESH_HELP)
     parser.add_argument(
         "--device", choices=("cuda", "cpu"), default=None, help="cuda: workers on cuda:0..N-1; cpu: N CPU workers "
         "(default: cuda when a CUDA device is visible)",
@@ -76,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     if not client_counts or client_counts[0] < 1 or args.points < 1 or args.seconds <= 0:
         raise SystemExit("badf bench scaleout: --clients, --points and --seconds must be positive")
 
-    vertices, faces = load_npz(args.mesh)
+    vertices, faces = read_mesh(args.mesh)
     devices = [f"cuda:{index}" for index in range(workers)] if device == "cuda" else ["cpu"] * workers
     report: dict[str, Any] = {
         "benchmark": "scaleout",
@@ -117,7 +118,7 @@ def _phase(args: argparse.Namespace, devices: list[str], client_counts: list[int
         WorkerSettings(worker_id=f"w{index}", namespace="bench", device=device, stats_interval_s=3600.0)
         for index, device in enumerate(devices)
     ]
-    vertices, faces = load_npz(args.mesh)
+    vertices, faces = read_mesh(args.mesh)
     print(f"\n{len(devices)} worker(s) on {', '.join(devices)}: starting", flush=True)
     with workers_process(router, workers, start_timeout_s=900.0), Client(endpoint, namespace="bench", timeout=300) as client:
         _wait_for(lambda: len(client.workers()) == len(workers), 120.0, "the workers to answer through the router")
@@ -195,7 +196,7 @@ def _client_main(
     from badf.client import Client
 
     try:
-        vertices, _ = load_npz(mesh)
+        vertices, _ = read_mesh(mesh)
         frames = [deform(vertices, (index + step / _FRAME_COUNT) % 1.0) for step in range(_FRAME_COUNT)]
         lo, hi = vertices.min(axis=0), vertices.max(axis=0)
         rng = np.random.default_rng(index)

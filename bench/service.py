@@ -33,11 +33,11 @@ from badf.bench._common import (
     bench_device_name,
     deform,
     fill_sized_defaults,
-    load_npz,
     print_table,
     start_warp,
     timestamp,
 )
+from badf.server._mesh_files import MESH_HELP, read_mesh
 
 _SPAWN = multiprocessing.get_context("spawn")
 _ECHO_KEY = "bench/echo"
@@ -59,7 +59,7 @@ class Timing:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--mesh", required=True, help="a .npz with vertices (N, 3) and faces (M, 3)")
+    parser.add_argument("--mesh", required=True, help=MESH_HELP)
     parser.add_argument("--device", default=None, help="cpu, cuda:0, ... (default: the first GPU, else cpu)")
     parser.add_argument("--depth", type=int, default=7, help="octree depth (default 7)")
     parser.add_argument("--small", action="store_true", help="CPU-sized defaults for the four flags below")
@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     device = start_warp(args.device)
     fill_sized_defaults(args, _SMALL, _FULL)
     batches = [int(size) for size in args.batches.split(",") if size]
-    vertices, faces = load_npz(args.mesh)
+    vertices, faces = read_mesh(args.mesh)
     frames = [deform(vertices, k / 32) for k in range(32)]
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     rng = np.random.default_rng(0)

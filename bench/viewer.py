@@ -33,6 +33,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from badf.bench._common import bench_device_name, deform, fill_sized_defaults, print_table, start_warp, timestamp
+from badf.server._mesh_files import MESH_HELP, read_frames
 
 _SPAWN = multiprocessing.get_context("spawn")
 _WARM_UP = 3
@@ -66,7 +67,7 @@ class Following:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--mesh", required=True, help="a .npz with vertices (N, 3) or frames (T, N, 3), and faces")
+    parser.add_argument("--mesh", required=True, help=MESH_HELP)
     parser.add_argument("--device", default=None, help="cpu, cuda:0, ... (default: the first GPU, else cpu)")
     parser.add_argument("--depth", type=int, default=7, help="octree depth (default 7)")
     parser.add_argument("--resolution", type=int, default=256, help="slice grid per side (default 256)")
@@ -143,11 +144,10 @@ def _round(value: float | None) -> float | str:
 def _load_frames(path: str) -> tuple[np.ndarray, np.ndarray]:
     """(T, N, 3) float32 frames and (M, 3) int32 faces: a sequence's own frames, or 32 frames of a smooth
     deformation of a single mesh."""
-    data = np.load(path)
-    vertices, faces = np.asarray(data["vertices"], np.float32), np.ascontiguousarray(data["faces"], np.int32)
-    if vertices.ndim == 2:
-        vertices = np.stack([deform(vertices, k / 32) for k in range(32)])
-    return np.ascontiguousarray(vertices), faces
+    frames, faces = read_frames(path)
+    if len(frames) == 1:
+        frames = np.stack([deform(frames[0], k / 32) for k in range(32)])
+    return np.ascontiguousarray(frames), faces
 
 
 def _sweep(vertices: np.ndarray, axis: int, count: int) -> np.ndarray:

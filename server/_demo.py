@@ -22,6 +22,7 @@ from contextlib import ExitStack
 import numpy as np
 
 from badf.protocol import DEFAULT_ENDPOINT, BadfError
+from badf.server._mesh_files import MeshFileError, read_frames, read_mesh
 
 # Depth when none is given: what keeps frames interactive on each kind of device.
 DEFAULT_DEPTH = {"cuda": 7, "cpu": 5}
@@ -66,6 +67,11 @@ def run(args: argparse.Namespace) -> int:
     if args.depth is not None and not 1 <= args.depth <= MAX_DEPTH:
         print(f"badf demo: --depth must be in 1..{MAX_DEPTH}, got {args.depth}", file=sys.stderr)
         return 2
+    try:  # the mesh files are read before anything starts, so a bad one costs nothing
+        source = _morph_source(args) if args.scene == "morph" else None
+    except MeshFileError as error:
+        print(f"badf demo: {error}", file=sys.stderr)
+        return 2
     device = args.device or _default_device()
     kind = "cuda" if device.startswith("cuda") else "cpu"
     chosen = args.depth is not None
@@ -88,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             if args.scene == "cloth":
                 return _run_cloth(client, args, depth, stop, with_viewer=not args.no_viewer)
-            return _run_morph(client, args, depth, stop)
+            return _run_morph(client, args, source, depth, stop)
         except BadfError as error:
             print(f"\nbadf demo: {error}", file=sys.stderr)
             return 1
@@ -136,8 +142,8 @@ def _start_viewer(stack: ExitStack, endpoint: str, host: str, port: int) -> None
 
 
 # -- morph -----------------------------------------------------------------------------------------------
-def _run_morph(client, args, depth: int, stop: _StopFlag) -> int:
-    frames_of, faces, name = _morph_source(args)
+def _run_morph(client, args, source, depth: int, stop: _StopFlag) -> int:
+    frames_of, faces, name = source
     rest = frames_of(0)
     rng = np.random.default_rng(0)
     lo, hi = rest.min(axis=0), rest.max(axis=0)
@@ -177,13 +183,10 @@ def _run_morph(client, args, depth: int, stop: _StopFlag) -> int:
 def _morph_source(args):
     """(frame -> vertices, faces, object name)."""
     if args.sequence:
-        data = np.load(args.sequence)
-        frames, faces = data["vertices"].astype(np.float32), data["faces"].astype(np.int32)
-        if frames.ndim != 3:
-            raise SystemExit(f"badf demo: {args.sequence} has vertices of shape {frames.shape}, expected (T, N, 3)")
+        frames, faces = read_frames(args.sequence)
         return (lambda k: frames[k % len(frames)]), faces, pathlib.Path(args.sequence).stem
     if args.mesh:
-        vertices, faces = _load_mesh(args.mesh)
+        vertices, faces = read_mesh(args.mesh)
         name = pathlib.Path(args.mesh).stem
     else:
         import trimesh
@@ -207,18 +210,6 @@ def _wobble(vertices: np.ndarray, frame: int) -> np.ndarray:
     x, y = offset[:, 0] * c - offset[:, 1] * s, offset[:, 0] * s + offset[:, 1] * c
     moved = np.stack([x, y, offset[:, 2]], axis=1) * (1.0 + bulge)[:, None]
     return (centre + moved).astype(np.float32)
-
-
-def _load_mesh(path: str) -> tuple[np.ndarray, np.ndarray]:
-    import trimesh
-
-    try:
-        loaded = trimesh.load(path, force="mesh", process=False)
-    except (ValueError, OSError) as error:
-        raise SystemExit(f"badf demo: cannot read {path}: {error}") from None
-    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-        raise SystemExit(f"badf demo: {path} holds no triangles")
-    return np.asarray(loaded.vertices, np.float32), np.asarray(loaded.faces, np.int32)
 
 
 def _key_safe(name: str) -> str:

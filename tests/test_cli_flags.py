@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from conftest import free_endpoint
@@ -17,12 +18,21 @@ CASES = [
     (["view", "--connect", "notanendpoint"], "connect endpoint 'notanendpoint' is not a Zenoh endpoint"),
     (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--depth", "0"], "--depth must be in 1..10, got 0"),
     (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--depth", "11"], "--depth must be in 1..10, got 11"),
+    (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--mesh", "/nonexistent/m.obj"],
+     "/nonexistent/m.obj: no such file"),
+    (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--sequence", "<not-npz>"], "not an .npz archive"),
+    (["bench", "engine", "--quick", "--mesh", "<no-faces>"], "no faces array (it holds vertices)"),
+    (["bench", "service", "--small", "--mesh", "/nonexistent/m.npz"], "badf bench service: /nonexistent/m.npz"),
 ]
 
 
 @pytest.mark.parametrize(("args", "message"), CASES, ids=[" ".join(args) for args, _ in CASES])
-def test_a_malformed_command_line_is_one_clear_line(args: list[str], message: str) -> None:
-    args = [free_endpoint() if arg == "<free>" else arg for arg in args]
+def test_a_malformed_command_line_is_one_clear_line(args: list[str], message: str, tmp_path) -> None:
+    (tmp_path / "not.npz").write_bytes(b"not a zip archive")
+    np.savez(tmp_path / "no-faces.npz", vertices=np.zeros((3, 3), np.float32))
+    stand_ins = {"<free>": free_endpoint, "<not-npz>": lambda: str(tmp_path / "not.npz"),
+                 "<no-faces>": lambda: str(tmp_path / "no-faces.npz")}
+    args = [stand_ins[arg]() if arg in stand_ins else arg for arg in args]
     done = subprocess.run([sys.executable, "-m", "badf.cli", *args], capture_output=True, text=True, timeout=120)
     lines = [line for line in done.stderr.splitlines() if not line.startswith(("Warp ", "   "))]
     assert done.returncode == 2, done.stderr

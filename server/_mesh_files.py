@@ -1,0 +1,81 @@
+"""Reading a mesh, or a recorded sequence of its frames, from a file named on the command line.
+
+One reader for `badf demo` and every benchmark: an .npz with `vertices` (N, 3) or frames (T, N, 3) and
+`faces` (M, 3), or any mesh file trimesh reads (.obj, .ply, .stl, .off, .glb, ...). A file that cannot be
+read, or holds no triangles, is a `MeshFileError` naming the file and what was wrong; the command line
+prints it as one line. The engine checks values (NaN, face indices) when the mesh is registered.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import zipfile
+
+import numpy as np
+
+
+MESH_HELP = "a mesh file: .npz with vertices (N, 3) or frames (T, N, 3) and faces (M, 3), or any file trimesh reads"
+
+
+class MeshFileError(ValueError):
+    """A mesh file that does not exist, cannot be read, or does not hold a triangle mesh."""
+
+
+def read_frames(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """(frames float32 (T, N, 3), faces int32 (M, 3)); a single mesh is one frame."""
+    path = pathlib.Path(path)
+    if not path.exists():
+        raise MeshFileError(f"{path}: no such file")
+    if not path.is_file():
+        raise MeshFileError(f"{path}: not a file")
+    if path.suffix.lower() == ".npz":
+        vertices, faces = _read_npz(path)
+    else:
+        vertices, faces = _read_with_trimesh(path)
+    frames = vertices[None] if vertices.ndim == 2 else vertices
+    if frames.ndim != 3 or frames.shape[2] != 3 or frames.shape[0] == 0 or frames.shape[1] == 0:
+        raise MeshFileError(f"{path}: vertices of shape {vertices.shape}, expected (N, 3) or frames (T, N, 3)")
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] == 0:
+        raise MeshFileError(f"{path}: faces of shape {faces.shape}, expected (M, 3) with M > 0")
+    if not np.issubdtype(faces.dtype, np.integer):
+        raise MeshFileError(f"{path}: faces of dtype {faces.dtype}, expected integers")
+    if faces.min() < 0 or faces.max() >= frames.shape[1]:
+        raise MeshFileError(f"{path}: face indices span {faces.min()}..{faces.max()}, but there are "
+                            f"{frames.shape[1]} vertices")
+    if not np.issubdtype(frames.dtype, np.number) or np.issubdtype(frames.dtype, np.complexfloating):
+        raise MeshFileError(f"{path}: vertices of dtype {frames.dtype}, expected real numbers")
+    return np.ascontiguousarray(frames, np.float32), np.ascontiguousarray(faces, np.int32)
+
+
+def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices float32 (N, 3), faces int32 (M, 3)); the first frame of a sequence."""
+    frames, faces = read_frames(path)
+    return frames[0], faces
+
+
+def _read_npz(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
+    if not zipfile.is_zipfile(path):
+        raise MeshFileError(f"{path}: not an .npz archive (numpy.savez writes one)")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            missing = [key for key in ("vertices", "faces") if key not in data.files]
+            if missing:
+                raise MeshFileError(f"{path}: no {' or '.join(missing)} array (it holds {', '.join(data.files) or 'none'})")
+            return np.asarray(data["vertices"]), np.asarray(data["faces"])
+    except MeshFileError:
+        raise
+    except Exception as error:  # a damaged or foreign file: zipfile, pickle and format errors alike
+        raise MeshFileError(f"{path}: not a readable .npz ({type(error).__name__}: {error})") from None
+
+
+def _read_with_trimesh(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    try:
+        loaded = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as error:  # trimesh raises many kinds for files it cannot parse
+        raise MeshFileError(f"{path}: trimesh cannot read it ({type(error).__name__}: {error})") from None
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise MeshFileError(f"{path}: holds no triangles")
+    return np.asarray(loaded.vertices), np.asarray(loaded.faces)

@@ -1,0 +1,66 @@
+"""Mesh files named on the command line: .npz meshes and sequences, and whatever trimesh reads."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+import trimesh
+
+from badf.server._mesh_files import MeshFileError, read_frames, read_mesh
+
+
+@pytest.fixture
+def box() -> trimesh.Trimesh:
+    return trimesh.creation.box(extents=(1.0, 2.0, 3.0))
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".ply", ".off", ".stl"])
+def test_any_file_trimesh_reads_gives_the_same_triangles(box, tmp_path, suffix: str) -> None:
+    path = tmp_path / f"box{suffix}"
+    box.export(path)
+    vertices, faces = read_mesh(path)
+    assert vertices.dtype == np.float32 and faces.dtype == np.int32
+    assert faces.shape == box.faces.shape
+    # .stl stores each triangle's corners on their own: compare the triangles, not the indices
+    np.testing.assert_allclose(np.sort(vertices[faces].reshape(-1, 3), axis=0),
+                               np.sort(box.vertices[box.faces].reshape(-1, 3), axis=0), atol=1e-6)
+
+
+def test_an_npz_mesh_and_an_npz_sequence(box, tmp_path) -> None:
+    np.savez(tmp_path / "one.npz", vertices=box.vertices, faces=box.faces.astype(np.int64))
+    frames = np.stack([box.vertices + k for k in range(4)])
+    np.savez(tmp_path / "four.npz", vertices=frames, faces=box.faces)
+    vertices, faces = read_mesh(tmp_path / "one.npz")
+    np.testing.assert_array_equal(faces, box.faces)
+    np.testing.assert_allclose(vertices, box.vertices)
+    read, _ = read_frames(tmp_path / "four.npz")
+    assert read.shape == (4, len(box.vertices), 3)
+    np.testing.assert_allclose(read[3], box.vertices + 3)
+    np.testing.assert_allclose(read_mesh(tmp_path / "four.npz")[0], box.vertices)  # a sequence's first frame
+
+
+def test_unreadable_files_are_named_with_what_is_wrong(box, tmp_path) -> None:
+    (tmp_path / "text.npz").write_text("not a zip archive")
+    (tmp_path / "empty.obj").write_text("# no faces\nv 0 0 0\n")
+    np.savez(tmp_path / "no-faces.npz", vertices=box.vertices)
+    np.savez(tmp_path / "float-faces.npz", vertices=box.vertices, faces=box.faces.astype(np.float64))
+    np.savez(tmp_path / "past-the-end.npz", vertices=box.vertices[:4], faces=box.faces)
+    np.savez(tmp_path / "flat.npz", vertices=box.vertices[:, :2], faces=box.faces)
+    np.savez(tmp_path / "pickled.npz", vertices=np.array([object()], dtype=object), faces=box.faces)
+    cases = {
+        tmp_path / "missing.obj": "no such file",
+        tmp_path: "not a file",
+        tmp_path / "text.npz": "not an .npz archive",
+        tmp_path / "empty.obj": "holds no triangles",
+        tmp_path / "no-faces.npz": "no faces array",
+        tmp_path / "float-faces.npz": "faces of dtype float64, expected integers",
+        tmp_path / "past-the-end.npz": "face indices span 0..7, but there are 4 vertices",
+        tmp_path / "flat.npz": "expected (N, 3) or frames (T, N, 3)",
+        tmp_path / "pickled.npz": "not a readable .npz",
+    }
+    for path, message in cases.items():
+        with pytest.raises(MeshFileError, match=re.escape(message)) as raised:
+            read_frames(path)
+        assert str(path) in str(raised.value)
