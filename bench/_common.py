@@ -23,7 +23,11 @@ def mesh_folders() -> list[pathlib.Path]:
 
 
 def find_mesh(name: str) -> pathlib.Path:
-    """The .npz of a named mesh (e.g. "stanford-bunny"); FileNotFoundError naming the folders searched."""
+    """A mesh file's path as given, or the .npz of a named mesh (e.g. "stanford-bunny"); FileNotFoundError
+    naming the folders searched."""
+    given = pathlib.Path(name)
+    if given.suffix or len(given.parts) > 1:  # a path: its reader says what is wrong with it
+        return given
     for folder in mesh_folders():
         path = folder / f"{name}.npz"
         if path.exists():

@@ -465,7 +465,8 @@ def write_outputs(report: dict, out_dir: pathlib.Path, slug: str) -> None:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=None, help="cpu, cuda:0, ... (default: the first GPU, else cpu)")
     parser.add_argument("--meshes", default=",".join(SHARED_MESHES + tuple(SUBDIVIDED)),
-                        help="comma-separated mesh names (shared data set, or bunny-278k / bunny-1.1m)")
+                        help="comma-separated mesh names (shared data set, or bunny-278k / bunny-1.1m) or mesh files "
+                             "(.npz with vertices and faces, or any file trimesh reads)")
     parser.add_argument("--depths", default="5,6,7,8,9", help="ADF depths, comma-separated")
     parser.add_argument("--dense-max-depth", type=int, default=9, help="dense-grid baseline up to this depth")
     parser.add_argument("--points", type=int, default=1000, help="uniform points, and surface samples, per mesh")

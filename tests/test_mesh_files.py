@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from badf.bench._common import find_mesh
 from badf.server._mesh_files import MeshFileError, read_frames, read_mesh
 
 
@@ -64,3 +65,10 @@ def test_unreadable_files_are_named_with_what_is_wrong(box, tmp_path) -> None:
         with pytest.raises(MeshFileError, match=re.escape(message)) as raised:
             read_frames(path)
         assert str(path) in str(raised.value)
+
+
+def test_benchmarks_take_a_path_where_they_take_a_mesh_name(tmp_path) -> None:
+    assert find_mesh(str(tmp_path / "part.obj")) == tmp_path / "part.obj"
+    assert find_mesh("spot").name == "spot.npz"  # bundled with the tests
+    with pytest.raises(FileNotFoundError, match="no-such-mesh.npz is in none of"):
+        find_mesh("no-such-mesh")
