@@ -758,27 +758,32 @@ def test_a_closed_mesh_given_inside_out_is_signed_like_the_right_way_round(devic
         assert np.allclose(a, b, rtol=0, atol=1e-6 * np.ptp(vertices))
 
 
-def test_auto_signs_parts_facing_both_ways_like_the_oracle(device):
-    """Closed meshes of two spheres: side by side facing out (pseudonormals), one of them inside out (winding
-    numbers: the oracle's |w| = 1 counts inside it as inside), and a cavity nested in the other (outside)."""
+def test_auto_signs_parts_facing_both_ways_or_overlapping_like_the_oracle(device):
+    """Closed meshes of two spheres: side by side facing out (pseudonormals); one of them inside out (winding
+    numbers: the oracle's |w| = 1 counts inside it as inside); a cavity nested in the other (outside); a
+    shell nested in the other facing the same way (inside between them, where pseudonormals said outside);
+    two spheres running into each other."""
     vertices, faces = meshes.load("sphere")
     shift = np.array([2.5, 0.0, 0.0]) * np.ptp(vertices[:, 0])
-    cases = {
-        "both outward": (vertices * 0.8 + shift, faces, "pseudonormal"),
-        "one inside out": (vertices * 0.8 + shift, faces[:, [0, 2, 1]], "winding"),
-        "a cavity": (vertices * 0.5, faces[:, [0, 2, 1]], "winding"),
+    cases = {  # the second part, the sign `auto` picks, and the info() flag that says why
+        "both outward": (vertices * 0.8 + shift, faces, "pseudonormal", None),
+        "one inside out": (vertices * 0.8 + shift, faces[:, [0, 2, 1]], "winding", "parts_face_both_ways"),
+        "a cavity": (vertices * 0.5, faces[:, [0, 2, 1]], "winding", "parts_face_both_ways"),
+        "nested facing out": (vertices * 0.5, faces, "winding", "parts_overlap"),
+        "running into each other": (vertices * 0.8 + 0.25 * shift, faces, "winding", "parts_overlap"),
     }
     rng = np.random.default_rng(29)
-    for case, (second_vertices, second_faces, expected) in cases.items():
+    for case, (second_vertices, second_faces, expected, flag) in cases.items():
         v = np.concatenate([vertices, second_vertices])
         f = np.concatenate([faces, second_faces + len(vertices)])
         field = DistanceField(v, f, depth=5, device=device)
-        assert field.info()["sign"] == expected, case
-        assert field.info()["parts_face_both_ways"] == (expected == "winding"), case
+        info = field.info()
+        assert info["sign"] == expected, case
+        assert {name for name in ("parts_face_both_ways", "parts_overlap") if info[name]} == ({flag} - {None}), case
         lo, hi = v.min(axis=0), v.max(axis=0)
         points = rng.uniform(lo, hi, size=(800, 3))
         truth = oracle.signed_distance(points, v, f)
-        cell = field.info()["domain"]["finest_cell"]
+        cell = info["domain"]["finest_cell"]
         # exact signs agree off the surface; interpolated ones a cell diagonal (two, to be safe) away from it
         for mode, margin in (("exact", 1e-3 * oracle.bbox_diagonal(v)), ("adf", 2 * np.sqrt(3) * cell)):
             clear = np.abs(truth) > margin

@@ -44,10 +44,22 @@ from badf.server.adf._sign import (
     analyse_topology,
     components_disagree,
     encloses_volume,
+    face_components,
     face_volumes,
     resolve_sign,
+    spread_sample,
+    surface_enters_solid,
 )
-from badf.server.adf._tolerances import CENTRE_SNAP, DOMAIN_MARGIN, FAR_POINT, MIN_BAND, QUERY_CHUNK, REDOMAIN_MIN_FILL
+from badf.server.adf._tolerances import (
+    CENTRE_SNAP,
+    DOMAIN_MARGIN,
+    FAR_POINT,
+    MIN_BAND,
+    QUERY_CHUNK,
+    REDOMAIN_MIN_FILL,
+    SOLID_BESIDE_REACH,
+    SOLID_BESIDE_SAMPLE,
+)
 
 log = logging.getLogger("badf.server")
 
@@ -250,8 +262,9 @@ class DistanceField:
         face_volume, face_area = face_volumes(local, f)
         volume, area = float(face_volume.sum()), float(face_area.sum())
         solid = self._topology.closed and encloses_volume(volume, area, extent)
+        parts = face_components(self._topology) if solid else None
         # a part inside out beside the others (or a cavity) is signed by winding numbers (components_disagree)
-        self._parts_disagree = bool(solid and components_disagree(face_volume, face_area, self._topology, extent))
+        self._parts_disagree = bool(solid and components_disagree(face_volume, face_area, parts, extent))
         solid = solid and not self._parts_disagree
         self._flipped = bool(solid and volume < 0.0)
         if self._flipped:
@@ -265,6 +278,17 @@ class DistanceField:
 
         with _device_lock(self._device):
             self._build(local, f, len(v), area, extent)
+            # parts nested or running into each other are signed by winding numbers (surface_enters_solid)
+            self._parts_overlap = False
+            if self._sign_requested == "auto" and self._sign == "pseudonormal":
+                self._parts_overlap = surface_enters_solid(
+                    self._bvh.view(), self._vertices, self._faces, spread_sample(parts, SOLID_BESIDE_SAMPLE),
+                    SOLID_BESIDE_REACH * extent, self._device)
+            if self._parts_overlap:
+                self._sign = "winding"
+                self._normals = Pseudonormals(self._sign, self._topology, self._faces, self._buffers)
+                self._planned, self._counters = False, _Counters()
+                self._apply(local, extent, domain_moved=True)
 
     def _build(self, local: np.ndarray, f: np.ndarray, vertex_count: int, area: float, extent: float) -> None:
         self._buffers = DeviceBuffers(self._device)
@@ -471,6 +495,7 @@ class DistanceField:
             "failed_update": self._failed_update,
             "orientation_flipped": self._flipped,
             "parts_face_both_ways": self._parts_disagree,
+            "parts_overlap": self._parts_overlap,
             "topology": self._topology.summary(),
             "domain": {"centre": self._domain.centre.tolist(), "side": self._domain.side,
                        "finest_cell": self._domain.side / (1 << self._depth)},

@@ -147,9 +147,15 @@ def encloses_volume(volume, area, extent: float):
     return abs(volume) > MIN_ENCLOSED_VOLUME * area * extent
 
 
-def components_disagree(face_volume: np.ndarray, face_area: np.ndarray, topology: Topology, extent: float) -> bool:
-    """Whether a closed mesh has connected parts that enclose volume with opposite orientations, from its
-    faces' volumes and areas (`face_volumes`).
+def face_components(topology: Topology) -> np.ndarray:
+    """A label per face, equal for faces that edges or shared vertex positions connect (0..parts-1)."""
+    label = _vertex_components(topology.welded_faces, topology.welded_count)[topology.welded_faces[:, 0]]
+    return np.unique(label, return_inverse=True)[1].reshape(-1)
+
+
+def components_disagree(face_volume: np.ndarray, face_area: np.ndarray, label: np.ndarray, extent: float) -> bool:
+    """Whether a closed mesh has connected parts (`face_components`) that enclose volume with opposite
+    orientations, from its faces' volumes and areas (`face_volumes`).
 
     A part turned inside out beside the others has winding number -1 within, which the winding-number sign
     counts as inside, while its pseudonormals say outside; a cavity (an inward part nested in an outward
@@ -158,11 +164,42 @@ def components_disagree(face_volume: np.ndarray, face_area: np.ndarray, topology
     """
     if len(face_volume) == 0:
         return False
-    label = _vertex_components(topology.welded_faces, topology.welded_count)[topology.welded_faces[:, 0]]
     count = int(label.max()) + 1
     volume = np.bincount(label, weights=face_volume, minlength=count)
     solid = encloses_volume(volume, np.bincount(label, weights=face_area, minlength=count), extent)
     return bool(np.any(solid & (volume > 0.0)) and np.any(solid & (volume < 0.0)))
+
+
+def spread_sample(label: np.ndarray, limit: int) -> np.ndarray:
+    """Indices of up to about `limit` faces (all of them if there are no more), evenly spread over each part
+    (`face_components`), with at least min(8, its faces) from every part, so no part goes unsampled."""
+    count = len(label)
+    if count <= limit:
+        return np.arange(count, dtype=np.int32)
+    order = _stable_order(label, int(label.max()) + 1)
+    sizes = np.bincount(label)
+    starts = np.cumsum(sizes) - sizes
+    share = np.maximum(np.minimum(sizes, 8), (limit * sizes) // count)
+    part = np.repeat(np.arange(len(sizes)), share)
+    rank = np.arange(len(part)) - np.repeat(np.cumsum(share) - share, share)
+    return order[starts[part] + ((2 * rank + 1) * sizes[part]) // (2 * share[part])].astype(np.int32)
+
+
+def surface_enters_solid(bvh: BvhView, vertices: wp.array, faces: wp.array, sample: np.ndarray, reach: float,
+                         device) -> bool:
+    """Whether any sampled face (`spread_sample`) of a closed, outward-facing mesh has the solid just
+    outside it: a point `reach` off its centroid, along its normal, with |winding number| > 1/2.
+
+    That is the case where parts are nested (a shell inside a shell facing the same way) or run into each
+    other or themselves. Pseudonormals then say "outside" between the inner surface and the outer one,
+    where the winding number says inside; so `auto` takes winding numbers. On a mesh without that, every
+    such point has a winding number near 0.
+    """
+    faces_of = wp.array(sample, dtype=wp.int32, device=device)
+    found = wp.zeros(1, dtype=wp.int32, device=device)
+    wp.launch(_solid_beside_face, dim=len(sample), inputs=[bvh, vertices, faces, faces_of, reach], outputs=[found],
+              device=device)
+    return bool(found.numpy()[0])
 
 
 def resolve_sign(requested: str, topology: Topology, solid: bool) -> str:
@@ -312,6 +349,21 @@ def inside_by_pseudonormal(sign: SignView, bvh: BvhView, p: wp.vec3, face: int, 
         if side != 0.0:
             return side < 0.0
     return inside_by_winding(bvh, p)
+
+
+@wp.kernel(enable_backward=False)
+def _solid_beside_face(bvh: BvhView, vertices: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.vec3i),
+                       faces_of: wp.array(dtype=wp.int32), reach: float, found: wp.array(dtype=wp.int32)):
+    tri = faces[faces_of[wp.tid()]]
+    a, b, c = vertices[tri[0]], vertices[tri[1]], vertices[tri[2]]
+    n = wp.cross(b - a, c - a)
+    length = wp.length(n)
+    longest_sq = wp.max(wp.max(wp.length_sq(b - a), wp.length_sq(c - b)), wp.length_sq(a - c))
+    if length <= _DEGENERATE * longest_sq or length == 0.0:
+        return  # no direction to step in
+    beside = (a + b + c) / 3.0 + n * (reach / length)
+    if wp.abs(winding_number(bvh, beside)) > 0.5:
+        found[0] = 1
 
 
 @wp.kernel(enable_backward=False)

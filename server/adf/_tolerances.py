@@ -43,6 +43,13 @@ WINDING_FAR_FIELD = 2.0
 # (a doubled sheet, a flat closed shape); "auto" does not pick pseudonormals for it.
 MIN_ENCLOSED_VOLUME = 1.0e-6
 
+# Before "auto" settles on pseudonormals it looks just outside up to this many faces (spread over every
+# part), this fraction of the mesh's extent off each, for the solid: parts nested or running into each
+# other, which pseudonormals sign wrongly. A wider step would reach across narrow gaps between parts (a
+# false alarm costs speed, not accuracy); a narrower one, float32's resolution of the face's position.
+SOLID_BESIDE_SAMPLE = 16384
+SOLID_BESIDE_REACH = 1.0e-4
+
 # The smallest band, as a fraction of the domain's side: a narrower one is below what float32 coordinates
 # resolve (about 6e-8 of the side), and its square would underflow. Registration refuses a smaller band; a
 # band that becomes smaller later (the domain grew) is widened to it.
