@@ -64,6 +64,34 @@ def test_exact_queries_match_oracle(device, name):
         assert np.array_equal((result.distance < 0)[clear], inside[clear])
 
 
+@pytest.mark.parametrize("shape", ["slab", "cylinder"])
+def test_exact_queries_hold_beside_long_narrow_triangles(device, shape):
+    """A slab 2e-4 thick (its sides are two triangles 2e-4 of their length wide) and a cylinder of 2,048
+    sections (side triangles 1.5e-4 wide): CAD tessellations have such triangles. Points within 2e-5 of
+    the walls were off by up to 7e-5 of the diagonal, the narrow triangles taken as their three edges (and
+    the float32 region tests, which cancel to noise there, misplacing the point when they were not)."""
+    if shape == "slab":
+        mesh = trimesh.creation.box(extents=(1.0, 1.0, 2e-4))
+    else:
+        mesh = trimesh.creation.cylinder(radius=0.05, height=1.0, sections=2048)
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    rng = np.random.default_rng(37)
+    count = 1500
+    if shape == "slab":  # just outside and inside a side wall, between the two big faces
+        points = np.stack([0.5 + rng.uniform(-2e-5, 2e-5, count), rng.uniform(-0.5, 0.5, count),
+                           rng.uniform(-1e-4, 1e-4, count)], axis=1)
+    else:  # on either side of the curved wall
+        angle, radius = rng.uniform(0.0, 2.0 * np.pi, count), 0.05 + rng.uniform(-2e-5, 2e-5, count)
+        points = np.stack([radius * np.cos(angle), radius * np.sin(angle), rng.uniform(-0.45, 0.45, count)], axis=1)
+    field = DistanceField(vertices, faces, depth=6, device=device)
+    result = field.query(points, mode="exact", outputs=ALL_OUTPUTS)
+    truth = oracle.signed_distance(points, vertices, faces)
+    allowed = tol.EXACT_DISTANCE * oracle.bbox_diagonal(vertices)
+    assert np.max(np.abs(result.distance - truth)) <= allowed
+    assert np.all(np.abs(distance_to_own_face(points, vertices, faces, result.face) - np.abs(truth)) <= allowed)
+    assert np.all(np.abs(np.linalg.norm(points - result.closest_point, axis=1) - np.abs(truth)) <= allowed)
+
+
 @pytest.mark.parametrize(("name", "depth"), [("sphere", 5), ("spot", 5), ("fandisk", 4), ("torus", 4), ("sheet", 5)])
 @pytest.mark.parametrize("refine", ["surface", "centroid"])
 def test_every_stored_corner_is_exact(device, name, depth, refine):
