@@ -73,6 +73,19 @@ def single_triangle():
 GENERATED = {"sphere": sphere, "box": box, "torus": torus, "sheet": sheet, "single-triangle": single_triangle}
 
 # Meshes and whether they are closed (the oracle's sign is meaningful everywhere only for closed ones).
+def cone_on_cube(lift: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """A unit cube and a closed cone standing on its tip on the cube's corner (1, 1, 1), raised by `lift`
+    along (1, 1, 1): with lift 0 the two parts touch at that one point (a vertex of each)."""
+    cube = trimesh.creation.box(bounds=[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    cone = trimesh.creation.cone(radius=0.4, height=0.5, sections=24)
+    tip_down = np.asarray(cone.vertices) * [1.0, 1.0, -1.0]
+    cone_faces = np.asarray(cone.faces)[:, ::-1]  # the mirror turned them inward
+    tip = np.argmin(tip_down[:, 2])
+    cone_vertices = tip_down - tip_down[tip] + 1.0 + lift
+    vertices = np.concatenate([cube.vertices, cone_vertices])
+    return vertices, np.concatenate([cube.faces, cone_faces + len(cube.vertices)]).astype(np.int32)
+
+
 CLOSED = {"sphere", "box", "torus", "spot", "fandisk", "homer", "rocker-arm", "armadillo-86k"}
 
 

@@ -819,6 +819,28 @@ def test_auto_signs_parts_facing_both_ways_or_overlapping_like_the_oracle(device
             assert np.array_equal(np.sign(got), np.sign(truth[clear])), (case, mode)
 
 
+def test_parts_touching_at_a_point_keep_their_own_vertex_normals(device):
+    """A cone set on its tip on a cube's corner: the two welded there, and the corner's pseudonormal mixed
+    the cone's faces in. When the cone moved away, points beside the cube's corner read inside (-0.054
+    where the oracle says +0.054). Each part now has its own fan of corners there."""
+    vertices, faces = meshes.cone_on_cube()
+    field = DistanceField(vertices, faces, depth=6, device=device)
+    assert field.info()["sign"] == "pseudonormal"
+    corner = np.array([1.0, 1.0, 1.0])
+    rng = np.random.default_rng(53)
+    for lift in (0.0, 0.35):
+        moved, _ = meshes.cone_on_cube(lift)
+        field.update(moved)
+        # around the cube's corner, within 0.2 of it
+        points = corner + rng.uniform(-0.2, 0.2, size=(600, 3))
+        truth = oracle.signed_distance(points, moved, faces)
+        cell = field.info()["domain"]["finest_cell"]
+        for mode, margin in (("exact", 1e-3 * oracle.bbox_diagonal(moved)), ("adf", 2 * np.sqrt(3) * cell)):
+            clear = np.abs(truth) > margin
+            got = field.query(points[clear], mode=mode).distance
+            assert np.array_equal(np.sign(got), np.sign(truth[clear])), (lift, mode)
+
+
 @pytest.mark.parametrize("sign", ["auto", "winding", "none"])
 def test_exact_normals_on_the_surface_are_the_faces(device, sign):
     """Points on faces (within float32's rounding of them): the direction from the closest point is rounding

@@ -32,9 +32,10 @@ def reference_topology(faces: np.ndarray, vertices: np.ndarray) -> dict:
     edge_face_start = np.zeros(edge_count + 2, dtype=np.int32)
     edge_face_start[1 : edge_count + 1] = np.cumsum(counts)
     edge_face_start[edge_count + 1] = edge_face_start[edge_count]
-    vertex_of_corner = f.reshape(-1)
-    vertex_corner_start = np.zeros(vertex_count + 1, dtype=np.int32)
-    vertex_corner_start[1:] = np.cumsum(np.bincount(vertex_of_corner, minlength=vertex_count))
+    corner_fan = reference_fans(f, ~repeated)
+    fan_count = int(corner_fan.max()) + 1
+    fan_corner_start = np.zeros(fan_count + 1, dtype=np.int32)
+    fan_corner_start[1:] = np.cumsum(np.bincount(corner_fan.reshape(-1), minlength=fan_count))
     return {
         "welded_faces": f.astype(np.int32),
         "welded_count": vertex_count,
@@ -42,13 +43,42 @@ def reference_topology(faces: np.ndarray, vertices: np.ndarray) -> dict:
         "edge_count": edge_count,
         "edge_face_start": edge_face_start,
         "edge_face": face_of_slot[np.argsort(inverse, kind="stable")].astype(np.int32),
-        "vertex_corner_start": vertex_corner_start,
-        "vertex_corner": np.argsort(vertex_of_corner, kind="stable").astype(np.int32),
+        "corner_fan": corner_fan,
+        "fan_count": fan_count,
+        "fan_corner_start": fan_corner_start,
+        "fan_corner": np.argsort(corner_fan.reshape(-1), kind="stable").astype(np.int32),
         "boundary_edges": int(np.sum(counts == 1)),
         "nonmanifold_edges": int(np.sum(counts > 2)),
         "inconsistent_edges": int(np.sum((counts == 2) & (orientation_sum != 0))),
         "repeated_vertex_faces": int(np.sum(repeated)),
     }
+
+
+def reference_fans(welded_faces: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    """(M, 3) fan of each corner: a Python union-find joining the corners at the same welded vertex of faces
+    that share an edge; fans numbered by (welded vertex, smallest corner)."""
+    m = len(welded_faces)
+    parent = list(range(3 * m))
+
+    def find(x: int) -> int:
+        while parent[x] != x:
+            x = parent[x]
+        return x
+
+    faces_of_edge: dict[tuple[int, int], list[int]] = {}
+    for face in np.flatnonzero(usable):
+        for k in range(3):
+            a, b = int(welded_faces[face, k]), int(welded_faces[face, (k + 1) % 3])
+            faces_of_edge.setdefault((min(a, b), max(a, b)), []).append(int(face))
+    for (a, b), faces in faces_of_edge.items():
+        for vertex in (a, b):
+            corners = [3 * face + int(np.flatnonzero(welded_faces[face] == vertex)[0]) for face in faces]
+            for corner in corners[1:]:
+                low, high = sorted((find(corners[0]), find(corner)))
+                parent[high] = low
+    root = np.array([find(c) for c in range(3 * m)])
+    key = welded_faces.reshape(-1).astype(np.int64)[root] * (3 * m) + root
+    return np.unique(key, return_inverse=True)[1].reshape(m, 3).astype(np.int32)
 
 
 def _awkward() -> tuple[np.ndarray, np.ndarray]:
@@ -75,6 +105,7 @@ CASES = {
     "sheet": meshes.sheet,
     "single triangle": meshes.single_triangle,
     "awkward sphere": _awkward,
+    "parts touching at a point": meshes.cone_on_cube,
 }
 
 
@@ -95,3 +126,11 @@ def test_the_awkward_sphere_has_every_defect():
     assert topology.boundary_edges > 0 and topology.nonmanifold_edges > 0
     assert topology.inconsistent_edges > 0 and topology.repeated_vertex_faces > 0
     assert topology.welded_count < len(vertices)  # the seam and the -0.0 copy were welded
+
+
+def test_parts_touching_at_a_point_get_a_fan_each():
+    """The cone's tip and the cube's corner weld into one vertex, whose corners make two fans."""
+    vertices, faces = meshes.cone_on_cube()
+    topology = analyse_topology(faces, vertices)
+    assert topology.closed
+    assert topology.fan_count == topology.welded_count + 1

@@ -43,8 +43,10 @@ class Topology:
     edge_count: int  # edges, plus one null edge (id edge_count) with no faces
     edge_face_start: np.ndarray  # (edge_count + 2,) CSR into edge_face
     edge_face: np.ndarray  # faces around each edge
-    vertex_corner_start: np.ndarray  # (welded_count + 1,) CSR into vertex_corner
-    vertex_corner: np.ndarray  # 3 * face + corner of each corner at each vertex
+    corner_fan: np.ndarray  # (M, 3) int32: the fan (see analyse_topology) of each face's corners
+    fan_count: int
+    fan_corner_start: np.ndarray  # (fan_count + 1,) CSR into fan_corner
+    fan_corner: np.ndarray  # 3 * face + corner of each corner in each fan
     boundary_edges: int  # edges with one face
     nonmanifold_edges: int  # edges with more than two faces
     inconsistent_edges: int  # two-face edges that both faces traverse in the same direction
@@ -69,6 +71,13 @@ class Topology:
 
 
 def analyse_topology(faces: np.ndarray, vertices: np.ndarray) -> Topology:
+    """Welds, edges and their checks, and the fans the vertex pseudonormals are taken over.
+
+    A fan is the corners at one welded vertex that faces sharing an edge through it connect. At a manifold
+    vertex that is every corner there. Where parts only touch at a point (by design, or by chance in the
+    first frame, as a cone's tip set on a cube's corner), each part's corners make a fan of their own. Its
+    pseudonormal is that part's alone, and stays right when the parts move apart in later frames.
+    """
     m = len(faces)
     welded_id, vertex_count = _weld(vertices)
     f = welded_id[faces].astype(np.int64)
@@ -92,10 +101,10 @@ def analyse_topology(faces: np.ndarray, vertices: np.ndarray) -> Topology:
     edge_face_start = np.zeros(edge_count + 2, dtype=np.int32)
     edge_face_start[1 : edge_count + 1] = np.cumsum(counts)
     edge_face_start[edge_count + 1] = edge_face_start[edge_count]  # the null edge has no faces
-    vertex_of_corner = f.reshape(-1)
-    corner_order = _stable_order(vertex_of_corner, vertex_count)
-    vertex_corner_start = np.zeros(vertex_count + 1, dtype=np.int32)
-    vertex_corner_start[1:] = np.cumsum(np.bincount(vertex_of_corner, minlength=vertex_count))
+    corner_fan, fan_count = _fans(f, usable, inverse[order], order, vertex_count)
+    fan_order = _stable_order(corner_fan, fan_count)
+    fan_corner_start = np.zeros(fan_count + 1, dtype=np.int32)
+    fan_corner_start[1:] = np.cumsum(np.bincount(corner_fan, minlength=fan_count))
     return Topology(
         welded_faces=f.astype(np.int32),
         welded_count=vertex_count,
@@ -103,13 +112,39 @@ def analyse_topology(faces: np.ndarray, vertices: np.ndarray) -> Topology:
         edge_count=edge_count,
         edge_face_start=edge_face_start,
         edge_face=face_of_slot[order].astype(np.int32),
-        vertex_corner_start=vertex_corner_start,
-        vertex_corner=corner_order.astype(np.int32),
+        corner_fan=corner_fan.reshape(m, 3).astype(np.int32),
+        fan_count=fan_count,
+        fan_corner_start=fan_corner_start,
+        fan_corner=fan_order.astype(np.int32),
         boundary_edges=int(np.sum(counts == 1)),
         nonmanifold_edges=int(np.sum(counts > 2)),
         inconsistent_edges=int(np.sum(two & (orientation_sum != 0))),
         repeated_vertex_faces=int(np.sum(repeated)),
     )
+
+
+def _fans(f: np.ndarray, usable: np.ndarray, sorted_edge: np.ndarray, order: np.ndarray,
+          vertex_count: int) -> tuple[np.ndarray, int]:
+    """(fan of each corner (3M,), fan count): corners at one welded vertex joined through faces that share
+    an edge there. `order` sorts the usable edge slots (row-major) by edge id, `sorted_edge` is their edge
+    ids in that order. Fans are numbered by their first corner's welded vertex, then that corner."""
+    m = len(f)
+    slot = np.flatnonzero(usable.reshape(-1))[order]  # 3 * face + k of each usable slot, by edge
+    same = sorted_edge[1:] == sorted_edge[:-1]  # neighbours in that order share their edge
+    first, second = slot[:-1][same], slot[1:][same]
+    # each slot runs from its corner k to corner k + 1 of its face
+    first_end = 3 * (first // 3) + (first % 3 + 1) % 3
+    second_end = 3 * (second // 3) + (second % 3 + 1) % 3
+    welded = f.reshape(-1)
+    aligned = welded[first] == welded[second]  # the two faces run the edge the same way (inconsistent)
+    join_start = np.concatenate([first, first_end])
+    join_end = np.concatenate([np.where(aligned, second, second_end), np.where(aligned, second_end, second)])
+    root = _connected(join_start, join_end, 3 * m)
+    # number the fans by (welded vertex, first corner), so a mesh whose vertices are all manifold numbers
+    # them as its welded vertices
+    key = welded[root] * (3 * m) + root
+    _, fan = np.unique(key, return_inverse=True)
+    return fan.reshape(-1), int(fan.max()) + 1 if m else 0
 
 
 def _stable_order(values: np.ndarray, bound: int) -> np.ndarray:
@@ -211,18 +246,24 @@ def resolve_sign(requested: str, topology: Topology, solid: bool) -> str:
 
 
 def _vertex_components(faces: np.ndarray, vertex_count: int) -> np.ndarray:
-    """A label per vertex, equal for vertices that faces connect: hooking and pointer jumping over the
-    edges, O(log) rounds of numpy work rather than a Python loop over faces."""
-    parent = np.arange(vertex_count, dtype=np.int64)
+    """A label per vertex, equal for vertices that faces connect."""
     start = faces.reshape(-1).astype(np.int64)
     end = np.roll(faces, -1, axis=1).reshape(-1).astype(np.int64)
+    return _connected(start, end, vertex_count)
+
+
+def _connected(start: np.ndarray, end: np.ndarray, count: int) -> np.ndarray:
+    """The smallest member of each of `count` items' classes, joining start[i] with end[i]: hooking and
+    pointer jumping, O(log) rounds of numpy work rather than a Python loop over the pairs."""
+    parent = np.arange(count, dtype=np.int64)
+    start, end = start.astype(np.int64), end.astype(np.int64)
     while True:
         a, b = parent[start], parent[end]
         differ = a != b
         if not differ.any():
             return parent
         np.minimum.at(parent, np.maximum(a, b)[differ], np.minimum(a, b)[differ])
-        while True:  # point every vertex at its root
+        while True:  # point every item at its root
             jumped = parent[parent]
             if np.array_equal(jumped, parent):
                 break
@@ -232,7 +273,7 @@ def _vertex_components(faces: np.ndarray, vertex_count: int) -> np.ndarray:
 @wp.struct
 class SignView:
     method: int
-    faces: wp.array(dtype=wp.vec3i)  # over welded vertex ids
+    corner_fan: wp.array(dtype=wp.vec3i)  # each face corner's fan: where its vertex normal is
     face_edge: wp.array(dtype=wp.vec3i)
     face_normal: wp.array(dtype=wp.vec3)  # unit, zero for a degenerate face
     vertex_normal: wp.array(dtype=wp.vec3)  # angle-weighted pseudonormal, unit or zero
@@ -250,7 +291,7 @@ class Pseudonormals:
         self.face_count = faces.shape[0]
         self.edge_count = topology.edge_count
         active = method == "pseudonormal"
-        self.vertex_count = topology.welded_count if active else 1
+        self.vertex_count = topology.fan_count if active else 1  # a vertex normal per fan
         b = buffers
 
         def upload(name, data, dtype):
@@ -259,16 +300,12 @@ class Pseudonormals:
                 arr.assign(data)
             return arr
 
-        self.welded_faces = upload(
-            "sign.welded_faces", topology.welded_faces if active else np.zeros((1, 3), np.int32), wp.vec3i
-        )
+        self.corner_fan = upload("sign.corner_fan", topology.corner_fan if active else np.zeros((1, 3), np.int32), wp.vec3i)
         self.face_edge = upload("sign.face_edge", topology.face_edge if active else np.zeros((1, 3), np.int32), wp.vec3i)
         self.edge_face_start = upload("sign.edge_face_start", topology.edge_face_start if active else [0], wp.int32)
         self.edge_face = upload("sign.edge_face", topology.edge_face if active else [0], wp.int32)
-        self.vertex_corner_start = upload(
-            "sign.vertex_corner_start", topology.vertex_corner_start if active else [0], wp.int32
-        )
-        self.vertex_corner = upload("sign.vertex_corner", topology.vertex_corner if active else [0], wp.int32)
+        self.fan_corner_start = upload("sign.fan_corner_start", topology.fan_corner_start if active else [0], wp.int32)
+        self.fan_corner = upload("sign.fan_corner", topology.fan_corner if active else [0], wp.int32)
         self.face_normal = b.array("sign.face_normal", self.face_count if active else 1, wp.vec3)
         self.face_angles = b.array("sign.face_angles", self.face_count if active else 1, wp.vec3)
         self.vertex_normal = b.array("sign.vertex_normal", self.vertex_count, wp.vec3)
@@ -295,7 +332,7 @@ class Pseudonormals:
         wp.launch(_face_normals, dim=self.face_count, inputs=[vertices, self.faces],
                   outputs=[self.face_normal, self.face_angles, self.volume_area], device=self.device)
         wp.launch(_vertex_normals, dim=self.vertex_count,
-                  inputs=[self.vertex_corner_start, self.vertex_corner, self.face_normal, self.face_angles],
+                  inputs=[self.fan_corner_start, self.fan_corner, self.face_normal, self.face_angles],
                   outputs=[self.vertex_normal], device=self.device)
         wp.launch(_edge_normals, dim=self.edge_count + 1, inputs=[self.edge_face_start, self.edge_face, self.face_normal],
                   outputs=[self.edge_normal], device=self.device)
@@ -315,7 +352,7 @@ class Pseudonormals:
         v = SignView()
         v.method = self.code
         v.winding_frame = self.winding_frame
-        v.faces = self.welded_faces
+        v.corner_fan = self.corner_fan
         v.face_edge = self.face_edge
         v.face_normal = self.face_normal
         v.vertex_normal = self.vertex_normal
@@ -329,7 +366,7 @@ def feature_normal(sign: SignView, face: int, feature: int) -> wp.vec3:
     if feature == FACE:
         return sign.face_normal[face]
     if feature <= VERTEX_C:
-        return sign.vertex_normal[sign.faces[face][feature - VERTEX_A]]
+        return sign.vertex_normal[sign.corner_fan[face][feature - VERTEX_A]]
     return sign.edge_normal[sign.face_edge[face][feature - EDGE_AB]]
 
 
