@@ -32,6 +32,7 @@ VERTICES, FACES = meshes.single_triangle()
         ({"sign": "inside"}, "sign must be one of auto, pseudonormal, winding, none"),
         ({"band": -1.0}, "band must be a positive finite number"),
         ({"band": float("nan")}, "band must be a positive finite number"),
+        ({"band": 10**400}, "band must be a positive finite number"),
         ({"refine": "everywhere"}, "refine must be one of surface, centroid"),
         ({"halo": 3}, r"halo must be an integer in 0..2"),
         ({"coherence": "yes"}, "coherence must be True or False"),
@@ -89,6 +90,7 @@ def test_empty_query_and_unrequested_outputs(device):
     [
         ({"axis": "w"}, "axis must be 'x', 'y' or 'z'"),
         ({"position": float("nan")}, "position must be finite"),
+        ({"position": 10**400}, "position must be finite"),
         ({"resolution": 0}, "resolution must be 1..2048"),
         ({"resolution": (10, 5000)}, "resolution must be 1..2048"),
         ({"resolution": "16"}, r"resolution must be an int or \(cols, rows\) of ints"),
@@ -143,6 +145,25 @@ def test_a_small_mesh_far_from_the_origin_keeps_its_domain(device, size, offset)
     for mode in ("adf", "exact"):
         np.testing.assert_allclose(field.query(offsets + [offset, -offset / 3, 0.0], mode=mode).distance,
                                    near.query(offsets, mode=mode).distance, rtol=0, atol=1e-5 * size)
+
+
+@pytest.mark.parametrize("distance", [10.0, 1e3, 1e6])
+def test_vertices_no_face_uses_do_not_set_the_domain(device, distance):
+    """A vertex left over from editing, or parked far away, once widened the domain: 220 corners instead of
+    285K for a unit sphere with one unused vertex at 1e3, and ADF errors of 5.9 there."""
+    vertices, faces = meshes.load("sphere")
+    parked = np.concatenate([vertices, [[distance] * 3]])
+    plain = DistanceField(vertices, faces, depth=5, device=device)
+    field = DistanceField(parked, faces, depth=5, device=device)
+    assert field.info()["domain"] == plain.info()["domain"]
+    assert field.info()["sign"] == plain.info()["sign"]
+    grown = vertices * np.float32(1.1)
+    field.update(np.concatenate([grown, [[-distance] * 3]]))  # the unused vertex jumps; the others grow a little
+    plain.update(grown)
+    assert field.info()["domain"] == plain.info()["domain"]
+    points = np.random.default_rng(47).uniform(-1.5, 1.5, size=(500, 3))
+    for mode in ("adf", "exact"):
+        np.testing.assert_array_equal(field.query(points, mode=mode).distance, plain.query(points, mode=mode).distance)
 
 
 def test_an_update_that_fails_on_the_way_leaves_no_wrong_answers(device, monkeypatch):

@@ -250,7 +250,11 @@ class DistanceField:
         self._halo = check_halo(halo)
         self._device = _resolve_device(device)
 
-        lo, hi = bounds(v)
+        # vertices no face uses (left over from editing, or parked far away) have no say in the domain
+        used = np.zeros(len(v), dtype=bool)
+        used[f] = True
+        self._used = None if used.all() else np.flatnonzero(used)
+        lo, hi = self._bounds(v)
         self._domain = _Domain.fit(lo, hi)
         if self._band is not None and self._band < MIN_BAND * self._domain.side:
             raise InvalidInputError(
@@ -290,6 +294,10 @@ class DistanceField:
                 self._planned, self._counters = False, _Counters()
                 self._apply(local, extent, domain_moved=True)
 
+    def _bounds(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The bounds of the vertices that faces use."""
+        return bounds(v if self._used is None else v[self._used])
+
     def _build(self, local: np.ndarray, f: np.ndarray, vertex_count: int, area: float, extent: float) -> None:
         self._buffers = DeviceBuffers(self._device)
         b = self._buffers
@@ -325,7 +333,7 @@ class DistanceField:
         Raises InvalidInputError (and keeps the last good frame) on a wrong shape or non-finite value.
         """
         v = as_vertices(vertices, expected_count=self._vertex_count)
-        lo, hi = bounds(v)
+        lo, hi = self._bounds(v)
         moved = self._failed_update is not None or not self._domain.holds(lo, hi)
         if moved:
             self._domain = _Domain.fit(lo, hi, previous=self._domain)

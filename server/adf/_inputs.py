@@ -117,6 +117,8 @@ def check_band(band) -> float | None:
         value = float(band)
     except (TypeError, ValueError):
         raise InvalidInputError(f"band must be a positive number or None, got {band!r}") from None
+    except OverflowError:  # an int past float's range
+        value = float("inf")
     if not np.isfinite(value) or value <= 0.0:
         raise InvalidInputError(f"band must be a positive finite number or None, got {band!r}")
     return value
@@ -163,6 +165,8 @@ def check_finite_number(value, name: str) -> float:
         number = float(value)
     except (TypeError, ValueError):
         raise InvalidInputError(f"{name} must be a number, got {value!r}") from None
+    except OverflowError:  # an int past float's range
+        number = float("inf")
     if not np.isfinite(number):
         raise InvalidInputError(f"{name} must be finite, got {value!r}")
     return number
