@@ -165,10 +165,19 @@ class Worker:
         ]
 
     def close(self) -> None:
-        """Withdraw the worker's keys, answer what waits with 'unavailable', and stop every object."""
-        for entity in reversed(self._entities):
-            entity.undeclare()
-        self._entities = []
+        """Stop taking requests, answer what waits with 'unavailable', let what runs finish and answer, stop
+        every object, and only then withdraw the liveliness token: a client cancels its requests to a worker
+        when the token goes, so withdrawing it first lost the answer of the request in progress."""
+        entities, self._entities = self._entities, []
+        for queryable in entities[:-1]:
+            queryable.undeclare()
+        try:
+            self._stop_serving()
+        finally:
+            for token in entities[-1:]:  # declared last in start()
+                token.undeclare()
+
+    def _stop_serving(self) -> None:
         shutting_down = WorkerUnavailableError(f"worker {self.worker_id} is shutting down")
         with self._lock:
             self._closing = True

@@ -14,6 +14,7 @@ import multiprocessing
 import os
 import signal
 import socket
+import threading
 from contextlib import ExitStack
 
 import numpy as np
@@ -128,6 +129,41 @@ def test_a_killed_worker_gives_clear_errors_then_clients_register_again() -> Non
             assert again.frame == obj.frame >= acknowledged[obj.name]
             assert_holds_frame(again, again.frame)
             assert again.update(frame_vertices(BASE, again.frame + 1)) == obj.frame + 1
+
+
+def test_a_stopping_worker_answers_the_request_in_progress_and_refuses_the_waiting() -> None:
+    """SIGTERM while one exact query of a million points runs and a second waits behind it: the running one
+    is answered and the waiting one refused (WorkerUnavailableError), as documented. The worker withdrew its
+    liveliness token first, and the client, which cancels what it sent to a worker whose token goes, lost
+    the answer of the running one."""
+    endpoint = free_endpoint()
+    settings = WorkerSettings(worker_id="stopping", listen=(endpoint,), device="cpu", stats_interval_s=60.0)
+    points = np.random.default_rng(5).uniform(-2.0, 2.0, (1_000_000, 3)).astype(np.float32)
+    outcomes: list = []
+    with ExitStack() as stack:
+        process = stack.enter_context(worker_process(settings, start_timeout_s=300.0))
+        client = stack.enter_context(Client(endpoint, timeout=120))
+        obj = client.register("busy", BASE, FACES, depth=4)
+
+        def ask() -> None:
+            try:
+                outcomes.append(obj.query(points, mode="exact").distance.shape)
+            except WorkerUnavailableError as error:
+                outcomes.append(error)
+
+        threads = [threading.Thread(target=ask) for _ in range(2)]
+        for thread in threads:
+            thread.start()
+        wait_until(lambda: client.workers(timeout=30)[0].requests_waiting == 1, timeout=120,
+                   what="one query to run and the other to wait")  # fmt: skip
+        end_process(process)
+        for thread in threads:
+            thread.join(120)
+        assert process.exitcode == 0
+    answered = [outcome for outcome in outcomes if outcome == (len(points),)]
+    refused = [outcome for outcome in outcomes if isinstance(outcome, WorkerUnavailableError)]
+    assert len(answered) == 1 and len(refused) == 1, outcomes
+    assert "shutting down" in str(refused[0])
 
 
 def test_a_viewer_that_stops_reading_stalls_nobody(worker, endpoint: str, client: Client) -> None:
