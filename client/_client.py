@@ -94,6 +94,9 @@ class Client:
         self._lock = threading.Lock()
         self._live: set[str] = set()  # workers whose liveliness token this client sees
         self._gone: set[str] = set()  # workers whose liveliness token this client saw go (and not come back)
+        # how often each worker's token was seen to go: a handle belongs to one life of its worker, as a
+        # worker started again under the same id (the same token) holds none of the last one's objects
+        self._deaths: dict[str, int] = {}
         self._cancellations: dict[str, zenoh.CancellationToken] = {}  # per worker, for requests in flight
         self._liveliness = self._session.liveliness().declare_subscriber(
             self.keys.every_worker_token, self._on_liveliness, history=True
@@ -207,6 +210,7 @@ class Client:
             if sample.kind == zenoh.SampleKind.DELETE:
                 self._live.discard(worker)
                 self._gone.add(worker)
+                self._deaths[worker] = self._deaths.get(worker, 0) + 1
                 cancellation = self._cancellations.pop(worker, None)
             else:
                 self._live.add(worker)
@@ -214,9 +218,20 @@ class Client:
         if cancellation is not None:
             cancellation.cancel()  # the requests in flight to that worker end now, with no reply
 
-    def _worker_gone(self, worker: str) -> bool:
+    def _worker_gone(self, worker: str, life: int | None = None) -> bool:
+        """Whether the client has seen `worker` go; with `life` (a handle's `_life`), also whether it has
+        seen it go since that life began, though it came back."""
         with self._lock:
-            return worker in self._gone
+            return worker in self._gone or (life is not None and self._deaths.get(worker, 0) != life)
+
+    def _is_live(self, worker: str) -> bool:
+        with self._lock:
+            return worker in self._live
+
+    def _life(self, worker: str) -> int:
+        """The current life of `worker`, as handles on its objects remember it."""
+        with self._lock:
+            return self._deaths.get(worker, 0)
 
     def _cancellation(self, worker: str) -> zenoh.CancellationToken:
         """The token that cancels requests to `worker` when its liveliness token goes (a fresh one per life)."""
@@ -226,10 +241,10 @@ class Client:
                 token = self._cancellations[worker] = zenoh.CancellationToken()
             return token
 
-    def _check_worker(self, worker: str, name: str | None) -> None:
-        """Raise at once, without a round trip, when the client has seen `worker` go."""
-        if self._worker_gone(worker):
-            raise _worker_gone_error(worker, name, seen_going=True)
+    def _check_worker(self, worker: str, name: str | None, life: int | None = None) -> None:
+        """Raise at once, without a round trip, when the client has seen `worker` go (since `life`)."""
+        if self._worker_gone(worker, life):
+            raise _worker_gone_error(worker, name, seen_going=True, back=self._is_live(worker))
 
     # --- requests ----------------------------------------------------------------------------------
 
@@ -263,18 +278,23 @@ class Client:
         timeout: float | None,
         worker: str,
         name: str | None = None,
+        life: int | None = None,
     ) -> M:
-        """The one reply of `worker` to `request` on `key`, decoded as `expect`, or the error it carries."""
-        self._check_worker(worker, name)
+        """The one reply of `worker` to `request` on `key`, decoded as `expect`, or the error it carries;
+        `life` (a handle's) makes a worker that went since then, even if back, count as gone."""
+        self._check_worker(worker, name, life)
         for reply in self._get(key, request, timeout=timeout, cancellation=self._cancellation(worker)):
             try:
                 return self._read_reply(reply, expect, key, timeout)
-            except WorkerUnavailableError:
+            except BadfError:
                 # a request cancelled because its worker went may end in Zenoh's error reply ("Query was
-                # cancelled") rather than with no reply: the same news either way
-                if self._worker_gone(worker):
-                    raise _worker_gone_error(worker, name, seen_going=True) from None
+                # cancelled") rather than with no reply, and one that reached the worker's next life finds
+                # no such object: the same news either way
+                if self._worker_gone(worker, life):
+                    raise _worker_gone_error(worker, name, seen_going=True, back=self._is_live(worker)) from None
                 raise
+        if self._worker_gone(worker, life):
+            raise _worker_gone_error(worker, name, seen_going=True, back=self._is_live(worker))
         raise self._nobody_answered(key, name=name, worker=worker, timeout=timeout)
 
     def _ask_all(self, key: str, request: Message, expect: type[M], *, timeout: float | None) -> list[M]:
@@ -362,6 +382,7 @@ class RemoteObject:
 
     def _adopt(self, info: ObjectInfo) -> None:
         self.worker = info.worker
+        self._life = self._client._life(info.worker)  # see Client._deaths
         self.vertex_count = info.vertex_count
         self.face_count = info.face_count
         self.options = info.options
@@ -380,7 +401,7 @@ class RemoteObject:
     def available(self) -> bool:
         """False once this client has seen the object's worker go (its liveliness token), or was closed; no
         round trip."""
-        return not self._client._session.is_closed() and not self._client._worker_gone(self.worker)
+        return not self._client._session.is_closed() and not self._client._worker_gone(self.worker, self._life)
 
     @property
     def vertices(self) -> np.ndarray | None:
@@ -409,7 +430,7 @@ class RemoteObject:
         if self._deleted:
             raise ObjectNotFoundError(f"{self.name!r} was deleted through this handle; reregister() serves it again")
         frame = self._next_frame(vertices)
-        self._client._check_worker(self.worker, self.name)
+        self._client._check_worker(self.worker, self.name, self._life)
         key = self._client.keys.object_frame(self.name)
         try:
             self._client._publisher(key).put(encode(frame))
@@ -495,7 +516,8 @@ class RemoteObject:
         return deleted.frame
 
     def _ask(self, key: str, request: Message, expect: type[M], timeout: float | None) -> M:
-        return self._client._ask(key, request, expect, timeout=timeout, worker=self.worker, name=self.name)
+        return self._client._ask(key, request, expect, timeout=timeout, worker=self.worker, name=self.name,
+                                 life=self._life)
 
     def _next_frame(self, vertices: np.ndarray) -> Frame:
         frame = Frame(self.name, self._frame + 1, vertices)
@@ -524,16 +546,17 @@ _DENIED = (
 )
 
 
-def _worker_gone_error(worker: str, name: str | None, *, seen_going: bool) -> WorkerUnavailableError:
+def _worker_gone_error(worker: str, name: str | None, *, seen_going: bool, back: bool = False) -> WorkerUnavailableError:
     if name is None:
         if seen_going:
             return WorkerUnavailableError(f"worker {worker} is gone: its liveliness token went away")
         return WorkerUnavailableError(
             f"worker {worker} does not answer: not started, gone, or not yet visible through the routers"
         )
+    how = "went away and came back (a new start under the same id)" if back else "is gone"
     return ObjectUnavailableError(
-        f"object {name!r} is unavailable: its worker {worker} is gone (its liveliness token went away), and "
-        "the object's state with it; register it again, e.g. with reregister() on a handle that registered it"
+        f"object {name!r} is unavailable: its worker {worker} {how}: its liveliness token went away, and the "
+        "object's state with it; register it again, e.g. with reregister() on a handle that registered it"
     )
 
 

@@ -166,13 +166,14 @@ def test_a_cancelled_request_to_a_gone_worker_is_object_unavailable_however_zeno
     client = ClientClass.__new__(ClientClass)  # no session: only the reply handling is under test
     client.keys, client.timeout, client.limits = KeySpace("badf"), 5.0, DEFAULT_LIMITS
     client._lock, client._live, client._gone, client._cancellations = threading.Lock(), {"right"}, set(), {}
+    client._deaths = {}
     client._get = lambda *args, **kwargs: [ErrorReply("Query was cancelled at session.rs:2681.")]
     with pytest.raises(WorkerUnavailableError) as alive:
         client._ask("badf/objects/cow/query", InfoRequest("cow"), ObjectInfo, timeout=None, worker="right", name="cow")
     assert not isinstance(alive.value, ObjectUnavailableError)
     client._live.discard("right")
     client._gone.add("right")
-    client._check_worker = lambda worker, name: None  # as for a request sent before the token went
+    client._check_worker = lambda worker, name, life=None: None  # as for a request sent before the token went
     with pytest.raises(ObjectUnavailableError):
         client._ask("badf/objects/cow/query", InfoRequest("cow"), ObjectInfo, timeout=None, worker="right", name="cow")
 
