@@ -11,6 +11,7 @@ object's handle raises ObjectUnavailableError at once (requests in flight to it 
 
 from __future__ import annotations
 
+import math
 import threading
 from typing import Sequence, TypeVar
 
@@ -79,8 +80,7 @@ class Client:
         config_file: str | None = None,
         limits: Limits = DEFAULT_LIMITS,
     ) -> None:
-        if not timeout > 0:
-            raise ValueError(f"timeout must be a positive number of seconds, got {timeout!r}")
+        timeout = _seconds(timeout)
         endpoints = [connect] if isinstance(connect, str) else list(connect)
         self.keys = KeySpace(namespace)
         self.timeout = float(timeout)
@@ -257,7 +257,7 @@ class Client:
         fan_out: bool = False,
         cancellation: zenoh.CancellationToken | None = None,
     ) -> zenoh.Handler:
-        seconds = self.timeout if timeout is None else timeout
+        seconds = self.timeout if timeout is None else _seconds(timeout)
         try:
             return self._session.get(
                 key,
@@ -522,7 +522,11 @@ class RemoteObject:
     def _next_frame(self, vertices: np.ndarray) -> Frame:
         frame = Frame(self.name, self._frame + 1, vertices)
         if len(frame.vertices) != self.vertex_count:
-            raise VertexCountMismatchError(f"{self.name} has {self.vertex_count} vertices; got {len(frame.vertices)}")
+            raise VertexCountMismatchError(
+                f"{self.name} has {self.vertex_count} vertices as this handle registered or found it; got "
+                f"{len(frame.vertices)} (if it was registered again since, with replace=True, take the new "
+                "handle, or Client.object(name))"
+            )
         self._frame = frame.frame
         self._vertices = _owned(frame.vertices, vertices)
         return frame
@@ -558,6 +562,14 @@ def _worker_gone_error(worker: str, name: str | None, *, seen_going: bool, back:
         f"object {name!r} is unavailable: its worker {worker} {how}: its liveliness token went away, and the "
         "object's state with it; register it again, e.g. with reregister() on a handle that registered it"
     )
+
+
+def _seconds(timeout: object) -> float:
+    """A timeout as float seconds: a positive finite number, else ValueError saying what came."""
+    is_number = isinstance(timeout, (int, float, np.integer, np.floating)) and not isinstance(timeout, bool)
+    if not (is_number and math.isfinite(timeout) and timeout > 0):  # type: ignore[arg-type]
+        raise ValueError(f"timeout must be a positive finite number of seconds, got {timeout!r}")
+    return float(timeout)  # type: ignore[arg-type]
 
 
 def _owned(canonical: np.ndarray, given: object) -> np.ndarray:

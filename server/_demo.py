@@ -21,7 +21,7 @@ from contextlib import ExitStack
 
 import numpy as np
 
-from badf.protocol import DEFAULT_ENDPOINT, BadfError
+from badf.protocol import DEFAULT_ENDPOINT, BadfError, InvalidOptionError, zenoh_config
 from badf.server._mesh_files import MeshFileError, read_frames, read_mesh
 
 # Depth when none is given: what keeps frames interactive on each kind of device.
@@ -61,6 +61,14 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.points < 1:
         print("badf demo: --points must be at least 1", file=sys.stderr)
+        return 2
+    if not 0 <= args.port <= 65535:
+        print(f"badf demo: --port must be in 0..65535, got {args.port}", file=sys.stderr)
+        return 2
+    try:
+        zenoh_config(mode="router", listen=[args.listen])  # checks the endpoint's form, as serve does
+    except InvalidOptionError as error:
+        print(f"badf demo: --listen: {error}", file=sys.stderr)
         return 2
     from badf.server.adf._tolerances import MAX_DEPTH
 

@@ -21,6 +21,10 @@ CASES = [
     (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--mesh", "/nonexistent/m.obj"],
      "/nonexistent/m.obj: no such file"),
     (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--sequence", "<not-npz>"], "not an .npz archive"),
+    (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--port", "-3"], "--port must be in 0..65535, got -3"),
+    (["demo", "--no-viewer", "--frames", "1", "--listen", "garbage"], "listen endpoint 'garbage' is not a Zenoh endpoint"),
+    (["serve", "--listen", "<free>", "--stats-interval", "nan"], "stats_interval_s must be a positive finite number"),
+    (["serve", "--listen", "<free>", "--stats-interval", "inf"], "stats_interval_s must be a positive finite number"),
     (["bench", "engine", "--quick", "--mesh", "<no-faces>"], "no faces array (it holds vertices)"),
     (["bench", "service", "--small", "--mesh", "/nonexistent/m.npz"], "badf bench service: /nonexistent/m.npz"),
 ]

@@ -392,6 +392,20 @@ def test_no_router_is_a_clear_error() -> None:
         Client(free_endpoint(), timeout=0.5)
 
 
+@pytest.mark.parametrize("timeout", [0, -1, float("inf"), float("nan"), True, "5"])
+def test_timeouts_are_positive_finite_seconds(client: Client, timeout) -> None:
+    """Client(timeout=inf) raised OverflowError from Zenoh, and a call's timeout of inf or nan a misleading
+    'negative timeout'."""
+    message = "timeout must be a positive finite number of seconds"
+    with pytest.raises(ValueError, match=message):
+        Client(free_endpoint(), timeout=timeout)
+    obj = client.register("blob", VERTICES, FACES)
+    with pytest.raises(ValueError, match=message):
+        obj.query(POINTS, timeout=timeout)
+    with pytest.raises(ValueError, match=message):
+        client.workers(timeout=timeout)
+
+
 def test_stats_line_counts_what_happened(worker: ThreadWorker, client: Client, raw: zenoh.Session) -> None:
     worker.running.stats_line()  # starts a fresh interval
     obj = client.register("blob", VERTICES, FACES)
