@@ -25,16 +25,18 @@ EDGE_CA = wp.constant(6)
 # Radix-tree keys hold their code in bits 61..0 (see module docstring).
 KEY_TOP_BIT = wp.constant(62)
 
-# Width of a triangle (twice its area over its longest edge), relative to that edge, below which it is
-# tested in float64. The Voronoi-region tests and the projection subtract terms of the order of L^4 (L the
+# Width of a triangle (twice its area over its longest edge), relative to that edge, below which its
+# Voronoi-region tests (triangle_distance_sq) are not used: they subtract terms of the order of L^4 (L the
 # longest edge) to get quantities of the order of (w L)^2, so float32 (2^-24) leaves an error of about
-# 2^-24 L^2 / w, up to 3e-4 L at w = 2e-4 L; below 1/32 that could pass 1e-5 of a long triangle's length.
-# The float64 test of the same float32 corners is exact to far below float32's rounding.
+# 2^-24 L^2 / w: 3e-4 L at w = 2e-4 L, within 2e-6 L above 1/32. A narrower triangle goes by its plane, as
+# closest_point_on_triangle does, where that is well-conditioned, else by its three edges.
 NARROW_WIDTH = wp.constant(1.0 / 32.0)
 
-# Relative width below which a triangle is, even in float64, its three edges: they are within half that
-# width of every point of it, and its plane is not defined by its corners.
-SLIVER_WIDTH = wp.constant(1.0e-10)
+# The plane of a triangle is taken from its two shortest edges (their cross product), whose rounding tilts
+# it by about 2^-24 |e1| |e2| / (w L): little for a needle (one short edge), much for a flat "cap" (two
+# long edges nearly in line), whose plane distance is then off by about 2^-24 |e1| |e2| / w, against w / 2
+# for its three edges. The plane is used where w^2 > PLANE_CONDITION |e1| |e2|: the smaller of the two.
+PLANE_CONDITION = wp.constant(2.0 * 4.0 * 2.0**-24)
 
 _SNAP = wp.constant(FEATURE_SNAP)
 
@@ -206,110 +208,37 @@ def _closest_on_segment(p: wp.vec3, a: wp.vec3, b: wp.vec3, feature_a: int, feat
 
 
 @wp.func
-def _f64(v: wp.vec3) -> wp.vec3d:
-    return wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
-
-
-@wp.func
-def _f32(v: wp.vec3d) -> wp.vec3:
-    return wp.vec3(wp.float32(v[0]), wp.float32(v[1]), wp.float32(v[2]))
-
-
-@wp.func
-def _on_edge64(ap: wp.vec3d, ab: wp.vec3d, t: wp.float64, feature_a: int, feature_b: int, feature_edge: int):
-    """Offset from a of the point at t along ab (clamped), and its feature, snapped to a vertex as in
-    _closest_on_segment."""
-    zero = wp.float64(0.0)
-    one = wp.float64(1.0)
-    t = wp.clamp(t, zero, one)
-    feature = feature_edge
-    if t <= wp.float64(_SNAP):
-        feature = feature_a
-    elif t >= one - wp.float64(_SNAP):
-        feature = feature_b
-    return t * ab, feature
-
-
-@wp.func
-def _closest_on_narrow_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
-    """closest_point_on_triangle for a narrow triangle (NARROW_WIDTH): Ericson's Voronoi regions in float64,
-    where the float32 corners and point are exact; a sliver (SLIVER_WIDTH) is its three edges."""
-    zero = wp.float64(0.0)
-    a64 = _f64(a)
-    ab = _f64(b) - a64
-    ac = _f64(c) - a64
-    ap = _f64(p) - a64
-    bc = ac - ab
-    n = wp.cross(ab, ac)
-    n_sq = wp.dot(n, n)
-    longest_sq = wp.max(wp.max(wp.dot(ab, ab), wp.dot(bc, bc)), wp.dot(ac, ac))
-    width_limit = wp.float64(SLIVER_WIDTH) * longest_sq
-    if n_sq <= width_limit * width_limit:  # its three edges, nearest first
-        length_ab = wp.max(wp.dot(ab, ab), wp.float64(1e-300))
-        q, feature = _on_edge64(ap, ab, wp.dot(ap, ab) / length_ab, VERTEX_A, VERTEX_B, EDGE_AB)
-        best = wp.length_sq(ap - q)
-        length_bc = wp.max(wp.dot(bc, bc), wp.float64(1e-300))
-        q_bc, f_bc = _on_edge64(ap - ab, bc, wp.dot(ap - ab, bc) / length_bc, VERTEX_B, VERTEX_C, EDGE_BC)
-        if wp.length_sq(ap - ab - q_bc) < best:
-            q = ab + q_bc
-            feature = f_bc
-            best = wp.length_sq(ap - q)
-        length_ca = wp.max(wp.dot(ac, ac), wp.float64(1e-300))
-        q_ca, f_ca = _on_edge64(ap - ac, -ac, wp.dot(ap - ac, -ac) / length_ca, VERTEX_C, VERTEX_A, EDGE_CA)
-        if wp.length_sq(ap - ac - q_ca) < best:
-            q = ac + q_ca
-            feature = f_ca
-        return _f32(a64 + q), feature
-    d1 = wp.dot(ab, ap)
-    d2 = wp.dot(ac, ap)
-    if d1 <= zero and d2 <= zero:
-        return a, VERTEX_A
-    bp = ap - ab
-    d3 = wp.dot(ab, bp)
-    d4 = wp.dot(ac, bp)
-    if d3 >= zero and d4 <= d3:
-        return b, VERTEX_B
-    vc = d1 * d4 - d3 * d2
-    if vc <= zero and d1 >= zero and d3 <= zero:
-        q, feature = _on_edge64(ap, ab, d1 / (d1 - d3), VERTEX_A, VERTEX_B, EDGE_AB)
-        return _f32(a64 + q), feature
-    cp = ap - ac
-    d5 = wp.dot(ab, cp)
-    d6 = wp.dot(ac, cp)
-    if d6 >= zero and d5 <= d6:
-        return c, VERTEX_C
-    vb = d5 * d2 - d1 * d6
-    if vb <= zero and d2 >= zero and d6 <= zero:
-        q, feature = _on_edge64(ap, ac, d2 / (d2 - d6), VERTEX_A, VERTEX_C, EDGE_CA)
-        return _f32(a64 + q), feature
-    va = d3 * d6 - d5 * d4
-    if va <= zero and d4 - d3 >= zero and d5 - d6 >= zero:
-        q, feature = _on_edge64(bp, bc, (d4 - d3) / ((d4 - d3) + (d5 - d6)), VERTEX_B, VERTEX_C, EDGE_BC)
-        return _f32(a64 + ab + q), feature
-    # the face: p less its offset from the plane
-    return _f32(a64 + ap - (wp.dot(ap, n) / n_sq) * n), FACE
-
-
-@wp.func
 def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
     """Closest point to p on triangle (a, b, c) and its feature code; exact for narrow and degenerate ones.
 
-    A triangle wider than NARROW_WIDTH is tried first by projection onto its plane; when the projection
-    falls outside, the nearest of its three edges (as segments) wins. A narrower one is tested in float64.
+    The triangle is tried first by projection onto its plane (see PLANE_CONDITION); when the projection
+    falls outside, or the plane is ill-conditioned, the nearest of its three edges (as segments) wins.
     """
     ab = b - a
     bc = c - b
     ca = a - c
-    n = wp.cross(ab, c - a)
+    ab_sq = wp.dot(ab, ab)
+    bc_sq = wp.dot(bc, bc)
+    ca_sq = wp.dot(ca, ca)
+    # the normal at the corner opposite the longest edge (every choice is +-cross(ab, ac))
+    n = wp.cross(ca, -bc)  # at c: cross(a - c, b - c)
+    longest_sq = ab_sq
+    shorter_product_sq = bc_sq * ca_sq
+    if bc_sq > longest_sq:
+        n = wp.cross(ab, -ca)  # at a: cross(b - a, c - a)
+        longest_sq = bc_sq
+        shorter_product_sq = ab_sq * ca_sq
+    if ca_sq > longest_sq:
+        n = wp.cross(bc, -ab)  # at b: cross(c - b, a - b)
+        longest_sq = ca_sq
+        shorter_product_sq = ab_sq * bc_sq
     n_sq = wp.dot(n, n)
-    longest_sq = wp.max(wp.max(wp.dot(ab, ab), wp.dot(bc, bc)), wp.dot(ca, ca))
-    width_limit = NARROW_WIDTH * longest_sq
-    if n_sq <= width_limit * width_limit:
-        return _closest_on_narrow_triangle(p, a, b, c)
-    q = p - (wp.dot(p - a, n) / n_sq) * n
-    if wp.dot(wp.cross(ab, q - a), n) >= 0.0 and wp.dot(wp.cross(bc, q - b), n) >= 0.0:
-        if wp.dot(wp.cross(ca, q - c), n) >= 0.0:
-            return q, FACE
+    width_sq = n_sq / wp.max(longest_sq, 1.0e-30)
+    if width_sq * width_sq > PLANE_CONDITION * PLANE_CONDITION * shorter_product_sq and n_sq > 0.0:
+        q = p - (wp.dot(p - a, n) / n_sq) * n
+        if wp.dot(wp.cross(ab, q - a), n) >= 0.0 and wp.dot(wp.cross(bc, q - b), n) >= 0.0:
+            if wp.dot(wp.cross(ca, q - c), n) >= 0.0:
+                return q, FACE
     q_ab, f_ab = _closest_on_segment(p, a, b, VERTEX_A, VERTEX_B, EDGE_AB)
     q_bc, f_bc = _closest_on_segment(p, b, c, VERTEX_B, VERTEX_C, EDGE_BC)
     q_ca, f_ca = _closest_on_segment(p, c, a, VERTEX_C, VERTEX_A, EDGE_CA)
@@ -335,7 +264,7 @@ def triangle_distance_sq(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> floa
     A triangle goes by the Voronoi regions of its vertices, edges and face (Ericson, Real-Time Collision
     Detection, 5.1.5): six dot products and at most one division, where the projection and three segments
     of closest_point_on_triangle take four. The two agree to rounding. A narrow triangle (see NARROW_WIDTH)
-    takes the same regions in float64, as in closest_point_on_triangle.
+    goes by closest_point_on_triangle.
     """
     ab = b - a
     ac = c - a
@@ -345,7 +274,7 @@ def triangle_distance_sq(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> floa
     longest_sq = wp.max(wp.max(wp.dot(ab, ab), wp.dot(bc, bc)), wp.dot(ac, ac))
     width_limit = NARROW_WIDTH * longest_sq
     if n_sq <= width_limit * width_limit:
-        q, _feature = _closest_on_narrow_triangle(p, a, b, c)
+        q, _feature = closest_point_on_triangle(p, a, b, c)
         return wp.length_sq(p - q)
     ap = p - a
     d1 = wp.dot(ab, ap)
