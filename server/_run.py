@@ -21,7 +21,7 @@ from typing import Any, Callable, Iterator, Protocol, Sequence
 
 import zenoh
 
-from badf.protocol import WorkerUnavailableError
+from badf.protocol import InvalidOptionError, WorkerUnavailableError
 from badf.server._router import RouterSettings, listen_endpoints, log_worker_changes
 from badf.server._worker import WorkerSettings, engine_field_builder, serve, warm_up_engine
 
@@ -39,7 +39,8 @@ def run_worker(settings: WorkerSettings, ready: _Settable | None = None) -> int:
 
     `ready` (for instance a multiprocessing Event) is set once the engine's kernels are loaded (see
     warm_up_engine) and the worker's keys and liveliness token are declared. Exit status 1: the Zenoh
-    session could not be opened (a taken port, a config Zenoh refuses); 2: the engine or the device is unavailable.
+    session could not be opened (a taken port, a config Zenoh refuses), or a worker of the same id already
+    serves the namespace; 2: the engine or the device is unavailable.
     """
     _configure_logging()
     stop = _stop_on_signals()
@@ -60,14 +61,18 @@ def run_worker(settings: WorkerSettings, ready: _Settable | None = None) -> int:
         except Exception:  # noqa: BLE001 - any failure here means the engine cannot serve on this device
             log.exception("the engine failed on %s before serving anything", device)
             return 2
-        serve(
-            session,
-            settings,
-            stop=stop,
-            build_field=build_field,
-            device=device,
-            on_ready=None if ready is None else (lambda _worker: ready.set()),
-        )
+        try:
+            serve(
+                session,
+                settings,
+                stop=stop,
+                build_field=build_field,
+                device=device,
+                on_ready=None if ready is None else (lambda _worker: ready.set()),
+            )
+        except InvalidOptionError as error:  # its id is taken
+            log.error("%s", error)
+            return 1
     return 0
 
 

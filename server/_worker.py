@@ -26,6 +26,7 @@ from badf.protocol import (
     DEFAULT_LIMITS,
     BadfError,
     InfoRequest,
+    InvalidOptionError,
     KeySpace,
     Limits,
     ObjectExistsError,
@@ -44,6 +45,9 @@ from badf.server._objects import Counters, DistanceFieldLike, ServedObject
 from badf.server._replies import answer, engine_errors, refuse, request_bytes
 
 log = logging.getLogger("badf.server")
+
+# How long a starting worker waits for the routers to say whether its id is taken (they answer at once)
+_ID_CHECK_TIMEOUT_S = 5.0
 
 FieldBuilder = Callable[[np.ndarray, np.ndarray, ObjectOptions], DistanceFieldLike]
 
@@ -157,6 +161,16 @@ class Worker:
         return self.settings.worker_id
 
     def start(self) -> None:
+        """Declare the worker's keys and its liveliness token, last. InvalidOptionError, before anything is
+        declared, if a worker of the same id already serves the namespace: both would answer every request
+        to that id, and both build every object placed on it."""
+        token_key = self._keys.worker_token(self.worker_id)
+        for reply in self._session.liveliness().get(token_key, timeout=_ID_CHECK_TIMEOUT_S):
+            if reply.ok is not None:
+                raise InvalidOptionError(
+                    f"a worker with id {self.worker_id!r} already serves namespace {self.settings.namespace!r}; "
+                    "give this one another --worker-id"
+                )
         self._registrar.start()
         self._entities = [
             self._session.declare_queryable(self._keys.worker_register(self.worker_id), self._on_register),

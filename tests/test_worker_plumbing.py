@@ -6,6 +6,7 @@ it through the real client, or through a raw Zenoh session for requests the clie
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 import threading
 
@@ -24,6 +25,7 @@ from badf.protocol import (
     FrameAck,
     IndexRangeError,
     InfoRequest,
+    InvalidOptionError,
     KeySpace,
     LimitExceededError,
     Limits,
@@ -385,6 +387,22 @@ def test_two_workers_share_a_namespace(endpoint: str) -> None:
             assert [o.name for o in client.objects()] == ["a", "b"]
             assert other.update(VERTICES[:30] + 1) == 1
             assert len(second.fields) == 1
+
+
+def test_a_second_worker_of_the_same_id_is_refused(endpoint: str) -> None:
+    """Two workers started with one --worker-id both served: both built every object placed on that id,
+    and workers() listed it twice. The second now refuses to start, before it declares anything."""
+    with ThreadWorker(endpoint, worker_id="twin"), Client(endpoint, timeout=10) as client:
+        settings = WorkerSettings(worker_id="twin", mode="client", connect=(endpoint,))
+        with zenoh.open(settings.zenoh_config()) as session:
+            second = Worker(session, settings, lambda *args: None, "stand-in")
+            with pytest.raises(InvalidOptionError, match="a worker with id 'twin' already serves namespace 'badf'"):
+                second.start()
+            assert [info.worker for info in client.workers()] == ["twin"]
+            other = Worker(session, dataclasses.replace(settings, worker_id="other"), lambda *args: None, "stand-in")
+            other.start()  # another id is welcome
+            wait_until(lambda: [info.worker for info in client.workers()] == ["other", "twin"], what="both ids")
+            other.close()
 
 
 def test_no_router_is_a_clear_error() -> None:
