@@ -63,10 +63,33 @@ def run(args: argparse.Namespace) -> int:
         signal.signal(signum, lambda _number, _frame: stop.set())
     try:
         settings = settings_from(args)
-        viewer = Viewer(settings)
-    except (BadfError, ValueError, ImportError) as error:
+    except (BadfError, ValueError) as error:
         print(f"badf view: {error}", file=sys.stderr)
         return 2
+    # The viewer is built on a thread of its own: reaching the routers can block in Zenoh's native code for
+    # the whole --timeout, where this thread would not run the signal handlers, so Ctrl-C went unheeded.
+    started: dict = {}
+    built = threading.Event()
+
+    def build() -> None:
+        try:
+            started["viewer"] = Viewer(settings)
+        except (BadfError, ValueError, ImportError) as error:
+            started["error"] = error
+        finally:
+            built.set()
+
+    print(f"badf view: connecting to {settings.connect} (up to {settings.timeout_s:g} s; Ctrl-C stops)",
+          file=sys.stderr, flush=True)
+    threading.Thread(target=build, name="badf-view-start", daemon=True).start()
+    while not built.wait(0.1):
+        if stop.is_set():
+            print("badf view: stopped while starting", file=sys.stderr)
+            exit_now(0)
+    if "error" in started:
+        print(f"badf view: {started['error']}", file=sys.stderr)
+        return 2
+    viewer = started["viewer"]
     with viewer:
         print(f"badf view: open {viewer.url} (workers at {settings.connect}); Ctrl-C stops", file=sys.stderr)
         while not stop.wait(1.0):
