@@ -208,19 +208,15 @@ def _closest_on_segment(p: wp.vec3, a: wp.vec3, b: wp.vec3, feature_a: int, feat
 
 
 @wp.func
-def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
-    """Closest point to p on triangle (a, b, c) and its feature code; exact for narrow and degenerate ones.
-
-    The triangle is tried first by projection onto its plane (see PLANE_CONDITION); when the projection
-    falls outside, or the plane is ill-conditioned, the nearest of its three edges (as segments) wins.
-    """
+def _reliable_plane(a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """(n, usable): the triangle's normal (unnormalised, as cross(b - a, c - a)) from its two shortest edges,
+    and whether its plane is better than its edges (PLANE_CONDITION)."""
     ab = b - a
     bc = c - b
     ca = a - c
     ab_sq = wp.dot(ab, ab)
     bc_sq = wp.dot(bc, bc)
     ca_sq = wp.dot(ca, ca)
-    # the normal at the corner opposite the longest edge (every choice is +-cross(ab, ac))
     n = wp.cross(ca, -bc)  # at c: cross(a - c, b - c)
     longest_sq = ab_sq
     shorter_product_sq = bc_sq * ca_sq
@@ -234,11 +230,52 @@ def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
         shorter_product_sq = ab_sq * bc_sq
     n_sq = wp.dot(n, n)
     width_sq = n_sq / wp.max(longest_sq, 1.0e-30)
-    if width_sq * width_sq > PLANE_CONDITION * PLANE_CONDITION * shorter_product_sq and n_sq > 0.0:
-        q = p - (wp.dot(p - a, n) / n_sq) * n
-        if wp.dot(wp.cross(ab, q - a), n) >= 0.0 and wp.dot(wp.cross(bc, q - b), n) >= 0.0:
-            if wp.dot(wp.cross(ca, q - c), n) >= 0.0:
-                return q, FACE
+    usable = width_sq * width_sq > PLANE_CONDITION * PLANE_CONDITION * shorter_product_sq and n_sq > 0.0
+    return n, usable
+
+
+@wp.func
+def _inside(q: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, n: wp.vec3) -> bool:
+    return wp.dot(wp.cross(b - a, q - a), n) >= 0.0 and wp.dot(wp.cross(c - b, q - b), n) >= 0.0 and (
+        wp.dot(wp.cross(a - c, q - c), n) >= 0.0
+    )
+
+
+@wp.func
+def _narrow_distance_sq(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
+    """triangle_distance_sq of a narrow triangle: to its plane where the projection falls inside and the
+    plane is reliable, else to the nearest of its edges."""
+    n, usable = _reliable_plane(a, b, c)
+    if usable:
+        h = wp.dot(p - a, n)
+        n_sq = wp.dot(n, n)
+        if _inside(p - (h / n_sq) * n, a, b, c, n):
+            return h * h / n_sq
+    return wp.min(wp.min(_segment_distance_sq(p, a, b), _segment_distance_sq(p, b, c)), _segment_distance_sq(p, c, a))
+
+
+@wp.func
+def _segment_distance_sq(p: wp.vec3, a: wp.vec3, b: wp.vec3) -> float:
+    ab = b - a
+    t = wp.clamp(wp.dot(p - a, ab) / wp.max(wp.dot(ab, ab), 1.0e-30), 0.0, 1.0)
+    return wp.length_sq(p - (a + t * ab))
+
+
+@wp.func
+def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """Closest point to p on triangle (a, b, c) and its feature code; exact for narrow and degenerate ones.
+
+    The triangle is tried first by projection onto its plane (see PLANE_CONDITION); when the projection
+    falls outside, or the plane is ill-conditioned, the nearest of its three edges (as segments) wins.
+    """
+    ab = b - a
+    bc = c - b
+    ca = a - c
+    n, usable = _reliable_plane(a, b, c)
+    if usable:
+        q = p - (wp.dot(p - a, n) / wp.dot(n, n)) * n
+        if _inside(q, a, b, c, n):
+            return q, FACE
     q_ab, f_ab = _closest_on_segment(p, a, b, VERTEX_A, VERTEX_B, EDGE_AB)
     q_bc, f_bc = _closest_on_segment(p, b, c, VERTEX_B, VERTEX_C, EDGE_BC)
     q_ca, f_ca = _closest_on_segment(p, c, a, VERTEX_C, VERTEX_A, EDGE_CA)
@@ -274,8 +311,7 @@ def triangle_distance_sq(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> floa
     longest_sq = wp.max(wp.max(wp.dot(ab, ab), wp.dot(bc, bc)), wp.dot(ac, ac))
     width_limit = NARROW_WIDTH * longest_sq
     if n_sq <= width_limit * width_limit:
-        q, _feature = closest_point_on_triangle(p, a, b, c)
-        return wp.length_sq(p - q)
+        return _narrow_distance_sq(p, a, b, c)
     ap = p - a
     d1 = wp.dot(ab, ap)
     d2 = wp.dot(ac, ap)

@@ -1,0 +1,343 @@
+"""Geometry shared by every stage: Morton codes, closest point on a triangle, boxes, solid angles.
+
+Conventions used across the engine:
+- Morton codes interleave x (most significant of each triple), y, z.
+- Radix-tree keys are int64 with the Morton code left-aligned at bit 61, so the common-prefix length of two
+  keys, in code bits, is ``clz64(a ^ b) - 2`` whatever the code's length; octree level = prefix // 3.
+- Closest features: FACE, the vertices A, B, C, and the edges AB, BC, CA of a face (a, b, c).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from badf.server.adf._tolerances import FEATURE_SNAP
+
+# Closest-feature codes returned by closest_point_on_triangle.
+FACE = wp.constant(0)
+VERTEX_A = wp.constant(1)
+VERTEX_B = wp.constant(2)
+VERTEX_C = wp.constant(3)
+EDGE_AB = wp.constant(4)
+EDGE_BC = wp.constant(5)
+EDGE_CA = wp.constant(6)
+
+# Radix-tree keys hold their code in bits 61..0 (see module docstring).
+KEY_TOP_BIT = wp.constant(62)
+
+# Width of a triangle (twice its area over its longest edge), relative to that edge, below which it is
+# handled as its three edges: its plane is then too ill-conditioned in float32 to project onto, and the
+# edges are within half that width of every point of it.
+SLIVER_WIDTH = wp.constant(3.0e-4)
+
+_SNAP = wp.constant(FEATURE_SNAP)
+
+# Local stack depth of BVH traversals; the radix tree over unique 62-bit keys is at most 62 levels deep.
+STACK_DEPTH = 64
+stack_int = wp.types.vector(length=STACK_DEPTH, dtype=wp.int32)
+stack_float = wp.types.vector(length=STACK_DEPTH, dtype=wp.float32)
+
+
+@wp.func
+def spread_bits(v: wp.int64) -> wp.int64:
+    """Insert two zero bits between each of the low 21 bits of v."""
+    x = v & wp.int64(0x1FFFFF)
+    x = (x | (x << wp.int64(32))) & wp.int64(0x1F00000000FFFF)
+    x = (x | (x << wp.int64(16))) & wp.int64(0x1F0000FF0000FF)
+    x = (x | (x << wp.int64(8))) & wp.int64(0x100F00F00F00F00F)
+    x = (x | (x << wp.int64(4))) & wp.int64(0x10C30C30C30C30C3)
+    x = (x | (x << wp.int64(2))) & wp.int64(0x1249249249249249)
+    return x
+
+
+@wp.func
+def compact_bits(v: wp.int64) -> wp.int64:
+    """Inverse of spread_bits: gather every third bit of v."""
+    x = v & wp.int64(0x1249249249249249)
+    x = (x ^ (x >> wp.int64(2))) & wp.int64(0x10C30C30C30C30C3)
+    x = (x ^ (x >> wp.int64(4))) & wp.int64(0x100F00F00F00F00F)
+    x = (x ^ (x >> wp.int64(8))) & wp.int64(0x1F0000FF0000FF)
+    x = (x ^ (x >> wp.int64(16))) & wp.int64(0x1F00000000FFFF)
+    x = (x ^ (x >> wp.int64(32))) & wp.int64(0x1FFFFF)
+    return x
+
+
+@wp.func
+def morton3(x: int, y: int, z: int) -> wp.int64:
+    return (spread_bits(wp.int64(x)) << wp.int64(2)) | (spread_bits(wp.int64(y)) << wp.int64(1)) | spread_bits(
+        wp.int64(z)
+    )
+
+
+@wp.func
+def morton3_decode(code: wp.int64) -> wp.vec3i:
+    return wp.vec3i(
+        int(compact_bits(code >> wp.int64(2))), int(compact_bits(code >> wp.int64(1))), int(compact_bits(code))
+    )
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+return __clzll(x);
+#else
+return x == 0 ? 64 : __builtin_clzll((unsigned long long)x);
+#endif
+""")
+def clz64(x: wp.int64) -> int: ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+return __popc((unsigned int)x);
+#else
+return __builtin_popcount((unsigned int)x);
+#endif
+""")
+def popcount(x: int) -> int: ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+__threadfence();
+#endif
+""")
+def thread_fence(): ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+const float4 v = __ldcg(reinterpret_cast<const float4*>(&arr.data[0]) + i);
+return wp::vec4(v.x, v.y, v.z, v.w);
+#else
+return arr.data[i];
+#endif
+""")
+def load_coherent_vec4(arr: wp.array(dtype=wp.vec4), i: int) -> wp.vec4:
+    """Read arr[i] from L2 in one 16-byte load, past this SM's L1 (values written in the same launch)."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+const float4 v = __ldg(reinterpret_cast<const float4*>(&arr.data[0]) + i);
+return wp::vec4(v.x, v.y, v.z, v.w);
+#else
+return arr.data[i];
+#endif
+""")
+def load_vec4(arr: wp.array(dtype=wp.vec4), i: int) -> wp.vec4:
+    """Read arr[i] in one 16-byte load through the read-only cache (arrays no thread of the launch writes)."""
+    ...
+
+
+# A (squared distance, leaf) pair packed in 64 bits, the distance's float bits above the leaf, so that the
+# least packed value is the nearest leaf, and the lower leaf index among equals. Squared distances are
+# never negative, so their bits order as the floats do; leaf -1 packs above every leaf.
+@wp.func_native("""
+union { float f; unsigned int u; } bits;
+bits.f = d_sq;
+return (wp::int64)(((unsigned long long)bits.u << 32) | (unsigned long long)(unsigned int)leaf);
+""")
+def pack_distance_leaf(d_sq: float, leaf: int) -> wp.int64: ...
+
+
+@wp.func_native("""
+union { float f; unsigned int u; } bits;
+bits.u = (unsigned int)((unsigned long long)packed >> 32);
+return bits.f;
+""")
+def packed_distance_sq(packed: wp.int64) -> float: ...
+
+
+@wp.func_native("""
+return (int)(unsigned int)((unsigned long long)packed & 0xffffffffull);
+""")
+def packed_leaf(packed: wp.int64) -> int: ...
+
+
+@wp.func_native("""
+unsigned long long* address = reinterpret_cast<unsigned long long*>(&arr.data[0]) + i;
+#if defined(__CUDA_ARCH__)
+atomicMin(address, (unsigned long long)packed);
+#else
+if ((unsigned long long)packed < *address) *address = (unsigned long long)packed;  // a CPU launch runs its threads one at a time
+#endif
+""")
+def atomic_min_packed(arr: wp.array(dtype=wp.int64), i: int, packed: wp.int64):
+    """arr[i] = min(arr[i], packed) for values of pack_distance_leaf, atomically."""
+    ...
+
+
+@wp.func
+def quantize(p: wp.vec3, origin: wp.vec3, inv_cell: float, resolution: int) -> wp.vec3i:
+    """Integer cell coordinates of p on a grid of `resolution` cells per axis, clamped into the grid."""
+    g = (p - origin) * inv_cell
+    top = resolution - 1
+    return wp.vec3i(
+        wp.clamp(int(wp.floor(g[0])), 0, top), wp.clamp(int(wp.floor(g[1])), 0, top), wp.clamp(int(wp.floor(g[2])), 0, top)
+    )
+
+
+@wp.func
+def box_distance_sq(p: wp.vec3, lower: wp.vec3, upper: wp.vec3) -> float:
+    d = wp.max(wp.max(lower - p, p - upper), wp.vec3(0.0))
+    return wp.dot(d, d)
+
+
+@wp.func
+def _closest_on_segment(p: wp.vec3, a: wp.vec3, b: wp.vec3, feature_a: int, feature_b: int, feature_edge: int):
+    ab = b - a
+    length_sq = wp.dot(ab, ab)
+    t = float(0.0)
+    if length_sq > 0.0:
+        t = wp.clamp(wp.dot(p - a, ab) / length_sq, 0.0, 1.0)
+    feature = feature_edge
+    if t <= _SNAP:
+        feature = feature_a
+    elif t >= 1.0 - _SNAP:
+        feature = feature_b
+    return a + t * ab, feature
+
+
+@wp.func
+def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """Closest point to p on triangle (a, b, c) and its feature code; exact for degenerate triangles.
+
+    A triangle wider than SLIVER_WIDTH is tried first by projection onto its plane; otherwise, or when the
+    projection falls outside, the nearest of its three edges (as segments) wins.
+    """
+    ab = b - a
+    bc = c - b
+    ca = a - c
+    n = wp.cross(ab, c - a)
+    n_sq = wp.dot(n, n)
+    longest_sq = wp.max(wp.max(wp.dot(ab, ab), wp.dot(bc, bc)), wp.dot(ca, ca))
+    width_limit = SLIVER_WIDTH * longest_sq
+    if n_sq > width_limit * width_limit:
+        q = p - (wp.dot(p - a, n) / n_sq) * n
+        if wp.dot(wp.cross(ab, q - a), n) >= 0.0 and wp.dot(wp.cross(bc, q - b), n) >= 0.0:
+            if wp.dot(wp.cross(ca, q - c), n) >= 0.0:
+                return q, FACE
+    q_ab, f_ab = _closest_on_segment(p, a, b, VERTEX_A, VERTEX_B, EDGE_AB)
+    q_bc, f_bc = _closest_on_segment(p, b, c, VERTEX_B, VERTEX_C, EDGE_BC)
+    q_ca, f_ca = _closest_on_segment(p, c, a, VERTEX_C, VERTEX_A, EDGE_CA)
+    best = q_ab
+    feature = f_ab
+    best_sq = wp.length_sq(p - q_ab)
+    d_sq = wp.length_sq(p - q_bc)
+    if d_sq < best_sq:
+        best = q_bc
+        feature = f_bc
+        best_sq = d_sq
+    d_sq = wp.length_sq(p - q_ca)
+    if d_sq < best_sq:
+        best = q_ca
+        feature = f_ca
+    return best, feature
+
+
+@wp.func
+def _segment_distance_sq(p: wp.vec3, a: wp.vec3, b: wp.vec3) -> float:
+    q, _feature = _closest_on_segment(p, a, b, VERTEX_A, VERTEX_B, EDGE_AB)
+    return wp.length_sq(p - q)
+
+
+@wp.func
+def triangle_distance_sq(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
+    """Squared distance from p to triangle (a, b, c): what the searches compare, so it is kept short.
+
+    A sliver (see SLIVER_WIDTH) is its three edges, as in closest_point_on_triangle. Any other triangle
+    goes by the Voronoi regions of its vertices, edges and face (Ericson, Real-Time Collision Detection,
+    5.1.5): six dot products and at most one division, where the projection and three segments of
+    closest_point_on_triangle take four. The two agree to rounding.
+    """
+    ab = b - a
+    ac = c - a
+    bc = c - b
+    n = wp.cross(ab, ac)
+    n_sq = wp.dot(n, n)
+    longest_sq = wp.max(wp.max(wp.dot(ab, ab), wp.dot(bc, bc)), wp.dot(ac, ac))
+    width_limit = SLIVER_WIDTH * longest_sq
+    if n_sq <= width_limit * width_limit:
+        d_sq = wp.min(_segment_distance_sq(p, a, b), _segment_distance_sq(p, b, c))
+        return wp.min(d_sq, _segment_distance_sq(p, c, a))
+    ap = p - a
+    d1 = wp.dot(ab, ap)
+    d2 = wp.dot(ac, ap)
+    if d1 <= 0.0 and d2 <= 0.0:
+        return wp.dot(ap, ap)  # vertex a
+    bp = p - b
+    d3 = wp.dot(ab, bp)
+    d4 = wp.dot(ac, bp)
+    if d3 >= 0.0 and d4 <= d3:
+        return wp.dot(bp, bp)  # vertex b
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        return wp.length_sq(ap - (d1 / (d1 - d3)) * ab)  # edge ab
+    cp = p - c
+    d5 = wp.dot(ab, cp)
+    d6 = wp.dot(ac, cp)
+    if d6 >= 0.0 and d5 <= d6:
+        return wp.dot(cp, cp)  # vertex c
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        return wp.length_sq(ap - (d2 / (d2 - d6)) * ac)  # edge ac
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0:
+        return wp.length_sq(bp - ((d4 - d3) / ((d4 - d3) + (d5 - d6))) * bc)  # edge bc
+    # the face: the distance to its plane
+    h = wp.dot(ap, n)
+    return h * h / n_sq
+
+
+@wp.func
+def solid_angle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
+    """Signed solid angle of triangle (a, b, c) seen from p (Van Oosterom and Strackee 1983)."""
+    x = a - p
+    y = b - p
+    z = c - p
+    lx = wp.length(x)
+    ly = wp.length(y)
+    lz = wp.length(z)
+    det = wp.dot(x, wp.cross(y, z))
+    denominator = lx * ly * lz + wp.dot(x, y) * lz + wp.dot(x, z) * ly + wp.dot(y, z) * lx
+    return 2.0 * wp.atan2(det, denominator)
+
+
+@wp.func
+def _separated_on_axis(axis: wp.vec3, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, half: float) -> bool:
+    # Box centred at the origin with half-size `half`; triangle v0, v1, v2 relative to the box centre.
+    p0 = wp.dot(axis, v0)
+    p1 = wp.dot(axis, v1)
+    p2 = wp.dot(axis, v2)
+    r = half * (wp.abs(axis[0]) + wp.abs(axis[1]) + wp.abs(axis[2]))
+    return wp.min(wp.min(p0, p1), p2) > r or wp.max(wp.max(p0, p1), p2) < -r
+
+
+@wp.func
+def triangle_overlaps_cube(a: wp.vec3, b: wp.vec3, c: wp.vec3, centre: wp.vec3, half: float) -> bool:
+    """Separating-axis test of triangle (a, b, c) against the axis-aligned cube (centre, half-size).
+
+    The 13 axes: the cube's 3 face normals, the triangle's normal, and the 9 edge-by-axis cross products.
+    A zero axis (degenerate triangle) never separates, so the test stays conservative.
+    """
+    v0 = a - centre
+    v1 = b - centre
+    v2 = c - centre
+    lo = wp.min(wp.min(v0, v1), v2)
+    hi = wp.max(wp.max(v0, v1), v2)
+    for k in range(3):
+        if lo[k] > half or hi[k] < -half:
+            return False
+    if _separated_on_axis(wp.cross(v1 - v0, v2 - v0), v0, v1, v2, half):
+        return False
+    edges = wp.matrix_from_rows(v1 - v0, v2 - v1, v0 - v2)
+    for i in range(3):
+        e = edges[i]
+        if _separated_on_axis(wp.vec3(0.0, -e[2], e[1]), v0, v1, v2, half):
+            return False
+        if _separated_on_axis(wp.vec3(e[2], 0.0, -e[0]), v0, v1, v2, half):
+            return False
+        if _separated_on_axis(wp.vec3(-e[1], e[0], 0.0), v0, v1, v2, half):
+            return False
+    return True
