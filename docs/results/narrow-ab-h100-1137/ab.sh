@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# A/B of the triangle test's narrow path on the bunny's default update, variants alternated
+# A/B of the triangle test's narrow path on the bunny's default update, variants alternated.
+# variants/dist.py is server/adf/_geometry.py as committed after it; old.patch and new.patch turn it into the others.
 set -u
 python3 -m pip install -q --no-deps --no-build-isolation --no-index -e . >/dev/null 2>&1
 for round in 1 2 3; do
