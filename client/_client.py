@@ -11,6 +11,7 @@ object's handle raises ObjectUnavailableError at once (requests in flight to it 
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 from typing import Sequence, TypeVar
@@ -62,6 +63,8 @@ from badf.protocol import (
 
 M = TypeVar("M", bound=Message)
 
+log = logging.getLogger("badf.client")
+
 
 class Client:
     """A connection to the badf workers behind a Zenoh router (by default the embedded one of `badf serve`).
@@ -111,14 +114,19 @@ class Client:
         self.close()
 
     def close(self) -> None:
-        """Close the Zenoh session; objects on the workers stay."""
+        """Close the Zenoh session; objects on the workers stay. Never raises: a link that no longer moves
+        (a worker stopped with frames queued towards it) can make Zenoh's close time out, after 10 s, with
+        an error that would otherwise end a `with Client(...)` block with a raw `zenoh.ZError`."""
         if self._session.is_closed():
             return
-        self._liveliness.undeclare()
-        for publisher in self._publishers.values():
-            publisher.undeclare()
-        self._publishers.clear()
-        self._session.close()
+        try:
+            self._liveliness.undeclare()
+            for publisher in self._publishers.values():
+                publisher.undeclare()
+            self._publishers.clear()
+            self._session.close()
+        except zenoh.ZError as error:
+            log.warning("closing the client's Zenoh session: %s", str(error).split(" at /", 1)[0])
 
     # --- objects -------------------------------------------------------------------------------------
 

@@ -405,6 +405,29 @@ def test_a_second_worker_of_the_same_id_is_refused(endpoint: str) -> None:
             other.close()
 
 
+def test_closing_a_client_never_raises_zenohs_close_timeout(caplog) -> None:
+    """After streaming 12 MB frames to a worker stopped with SIGSTOP, Zenoh's session close timed out (10 s)
+    and `with Client(...)` ended in a raw zenoh.ZError. The error is logged instead."""
+
+    class StuckSession:
+        closes = 0
+
+        def is_closed(self) -> bool:
+            return False
+
+        def close(self) -> None:
+            self.closes += 1
+            raise zenoh.ZError("close operation timed out! at /root/.cargo/zenoh/src/api/session.rs:1")
+
+    client = Client.__new__(Client)  # no session of its own: only close() is under test
+    client._session, client._publishers = StuckSession(), {}
+    client._liveliness = type("Subscriber", (), {"undeclare": lambda self: None})()
+    with caplog.at_level("WARNING", logger="badf.client"):
+        client.close()
+    assert client._session.closes == 1
+    assert "close operation timed out!" in caplog.text and "cargo" not in caplog.text
+
+
 def test_no_router_is_a_clear_error() -> None:
     with pytest.raises(WorkerUnavailableError, match="cannot reach"):
         Client(free_endpoint(), timeout=0.5)
