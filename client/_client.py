@@ -413,7 +413,8 @@ class RemoteObject:
 
     @property
     def vertices(self) -> np.ndarray | None:
-        """(N, 3) float32: the last vertices this handle sent (registered, updated or streamed)."""
+        """(N, 3) float32, or float64 as given: the last vertices this handle sent (registered, updated or
+        streamed)."""
         return self._vertices
 
     @property
@@ -422,9 +423,16 @@ class RemoteObject:
         return self._faces
 
     def update(self, vertices: np.ndarray, *, timeout: float | None = None) -> int:
-        """Send (N, 3) vertices as the next frame and wait until the worker has applied it; returns its number."""
+        """Send (N, 3) vertices as the next frame and wait until the worker has applied it; returns its number.
+        A frame that fails (refused, or its worker gone) uses up its number, but `vertices`, which a
+        re-registration restores, stay the last ones before it."""
+        kept = self._vertices
         frame = self._next_frame(vertices)
-        ack = self._ask(self._client.keys.object_frame(self.name), frame, FrameAck, timeout)
+        try:
+            ack = self._ask(self._client.keys.object_frame(self.name), frame, FrameAck, timeout)
+        except BadfError:
+            self._vertices = kept
+            raise
         self._saw(ack.frame)
         return ack.frame
 

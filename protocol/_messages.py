@@ -2,7 +2,8 @@
 
 A message is valid by construction: its constructor checks names, options, shapes, dtypes, finiteness and
 index ranges, and converts arrays to the canonical dtypes (float32 coordinates, int32 indices, uint8
-levels). `decode` adds what only the receiver knows: the sizes in the header against its `Limits`, checked
+levels); vertices and query points given as float64 stay float64, so far from the origin they keep
+their precision on the way to the engine, which recentres them in float64. `decode` adds what only the receiver knows: the sizes in the header against its `Limits`, checked
 before any array is created, and the dtypes the wire allows. Every failure raises a `MessageError`
 subclass whose message says what was expected and what came.
 
@@ -80,7 +81,7 @@ Element = Literal["float", "index", "level"]
 _DIMENSIONS: dict[str, tuple[str, int, str]] = {
     "N": ("max_vertices", 1, "vertices"),
     "M": ("max_faces", 1, "faces"),
-    "P": ("max_points", 1, "points"),
+    "P": ("max_points", 0, "points"),  # an empty batch is answered with empty arrays, as in-process
     "K": ("max_cells", 0, "cells"),
     "C": ("max_points", 0, "corner points"),
     "H": ("max_slice_resolution", 1, "grid rows"),
@@ -107,6 +108,9 @@ class _Slot:
     shape: tuple[str | int, ...]
     optional: bool = False
     finite: bool = False
+    # coordinates given as float64 stay float64, on the wire too: the engine recentres them in float64, so a
+    # mesh far from the origin keeps its precision (float32 at 1e5 is 0.008 apart)
+    keeps_float64: bool = False
 
     @property
     def shape_text(self) -> str:
@@ -149,6 +153,8 @@ def _canonical(owner: str, slot: _Slot, array: np.ndarray) -> np.ndarray:
         wanted = "numbers" if slot.element == "float" else "integers"
         raise DtypeError(f"{owner}.{slot.name} must hold {wanted} ({_CANONICAL[slot.element]}), got {array.dtype}")
     canonical = _CANONICAL[slot.element]
+    if slot.keeps_float64 and array.dtype == np.float64:
+        canonical = array.dtype
     if slot.element != "float" and array.dtype != canonical and array.size:
         low, high = _INTEGER_RANGE[slot.element]
         smallest, largest = int(array.min()), int(array.max())
@@ -356,7 +362,7 @@ class RegisterRequest(_Message):
 
     KIND: ClassVar[MessageKind] = MessageKind.REGISTER
     SLOTS: ClassVar[tuple[_Slot, ...]] = (
-        _Slot("vertices", "float", ("N", 3), finite=True),  # (N, 3) float32
+        _Slot("vertices", "float", ("N", 3), finite=True, keeps_float64=True),  # (N, 3) float32 or float64
         _Slot("faces", "index", ("M", 3)),  # (M, 3) int32, each in [0, N)
     )
     name: str
@@ -452,7 +458,7 @@ class Frame(_Message):
     """New vertex positions for an object, numbered by the sender; numbers must increase per object."""
 
     KIND: ClassVar[MessageKind] = MessageKind.FRAME
-    SLOTS: ClassVar[tuple[_Slot, ...]] = (_Slot("vertices", "float", ("N", 3), finite=True),)  # (N, 3) float32
+    SLOTS: ClassVar[tuple[_Slot, ...]] = (_Slot("vertices", "float", ("N", 3), finite=True, keeps_float64=True),)
     name: str
     frame: int
     vertices: np.ndarray
@@ -495,7 +501,7 @@ class QueryRequest(_Message):
     """A batch of points and the outputs wanted: interpolated from the ADF ("adf") or exact ("exact")."""
 
     KIND: ClassVar[MessageKind] = MessageKind.QUERY
-    SLOTS: ClassVar[tuple[_Slot, ...]] = (_Slot("points", "float", ("P", 3), finite=True),)  # (P, 3) float32
+    SLOTS: ClassVar[tuple[_Slot, ...]] = (_Slot("points", "float", ("P", 3), finite=True, keeps_float64=True),)
     name: str
     points: np.ndarray
     mode: QueryMode = "adf"
@@ -709,7 +715,7 @@ class MeshReply(_Message):
 
     KIND: ClassVar[MessageKind] = MessageKind.MESH_REPLY
     SLOTS: ClassVar[tuple[_Slot, ...]] = (
-        _Slot("vertices", "float", ("N", 3), finite=True),  # (N, 3) float32
+        _Slot("vertices", "float", ("N", 3), finite=True, keeps_float64=True),  # (N, 3) float32 or float64
         _Slot("faces", "index", ("M", 3), optional=True),  # (M, 3) int32, each in [0, N)
     )
     name: str

@@ -151,12 +151,15 @@ def test_optional_arrays_round_trip_absent() -> None:
 
 
 def test_inputs_are_canonicalised() -> None:
-    request = RegisterRequest("a", VERTICES.astype(np.float64), FACES.astype(np.int64))
+    request = RegisterRequest("a", VERTICES.astype(np.float16), FACES.astype(np.int64))
     assert request.vertices.dtype == np.float32 and request.faces.dtype == np.int32
+    # float64 coordinates (vertices, query points) stay float64, for meshes far from the origin
+    assert RegisterRequest("a", VERTICES.astype(np.float64), FACES).vertices.dtype == np.float64
     wire = pack(MessageKind.QUERY, {"name": "a", "mode": "adf", "outputs": ["distance"]}, [POINTS.astype(np.float64)])
     decoded = decode(wire, QueryRequest)
-    assert decoded.points.dtype == np.float32 and decoded.points.flags.c_contiguous
+    assert decoded.points.dtype == np.float64 and decoded.points.flags.c_contiguous
     np.testing.assert_array_equal(decoded.points, POINTS)
+    assert QueryRequest("a", np.round(POINTS).astype(np.int64)).points.dtype == np.float32
     faces_u32 = pack(
         MessageKind.REGISTER,
         RegisterRequest("a", VERTICES, FACES).metadata(),
@@ -253,19 +256,21 @@ def test_wrong_shapes() -> None:
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_non_finite_coordinates(bad: float) -> None:
-    for cls, message in (
-        (Frame, Frame("a", 1, VERTICES)),
-        (QueryRequest, QueryRequest("a", POINTS)),
-        (MeshReply, MeshReply("a", 1, VERTICES)),
-    ):
-        data = bytearray(encode(message))
-        struct.pack_into("<f", data, len(data) - 4, bad)  # the last coordinate of the last row
-        with pytest.raises(NonFiniteError, match="row"):
-            decode(data, cls)
-    huge = POINTS.astype(np.float64)
-    huge[3, 1] = 1e300  # finite in float64, infinite in float32
-    with pytest.raises(NonFiniteError, match="after conversion"):
-        decode(pack(MessageKind.QUERY, {"name": "a", "mode": "adf", "outputs": ["distance"]}, [huge]), QueryRequest)
+    for dtype, code in ((np.float32, "<f"), (np.float64, "<d")):
+        for cls, message in (
+            (Frame, Frame("a", 1, VERTICES.astype(dtype))),
+            (QueryRequest, QueryRequest("a", POINTS.astype(dtype))),
+            (MeshReply, MeshReply("a", 1, VERTICES.astype(dtype))),
+        ):
+            data = bytearray(encode(message))
+            struct.pack_into(code, data, len(data) - np.dtype(dtype).itemsize, bad)  # the last row's last coordinate
+            with pytest.raises(NonFiniteError, match="row"):
+                decode(data, cls)
+    if np.finfo(np.longdouble).max > np.finfo(np.float64).max:  # long double wider than float64 (x86)
+        huge = POINTS.astype(np.longdouble)
+        huge[3, 1] = 1e300  # finite there, infinite in float32
+        with pytest.raises(NonFiniteError, match="after conversion"):
+            QueryRequest("a", huge)
 
 
 def test_face_index_out_of_range() -> None:

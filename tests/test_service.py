@@ -10,6 +10,7 @@ import threading
 
 import meshes
 import numpy as np
+import oracle
 import pytest
 import zenoh
 from conftest import free_endpoint, wait_until
@@ -112,6 +113,54 @@ def test_registered_meshes_answer_like_the_engine(client: Client, mesh: str, opt
     assert info.field_info["sign"] == local.info()["sign"]
     assert (info.vertex_count, info.face_count) == (local.vertex_count, local.face_count)
     assert_same_answers(remote, local, sample_points(vertices))
+
+
+def test_float64_coordinates_far_from_the_origin_keep_their_precision(client: Client) -> None:
+    """The protocol turned every coordinate into float32, so a mesh 1e5 from the origin given as float64 was
+    exact to 4.7e-8 of its diagonal in-process and to 2.7e-3 through the service. Float64 vertices and points
+    now travel as they are, and the service answers exactly what the engine does, frame after frame."""
+    vertices, faces = meshes.load("sphere")
+    far = vertices.astype(np.float64) + [1.0e5, -2.0e5, 3.0e5]
+    points = far.mean(axis=0) + np.random.default_rng(59).uniform(-1.5, 1.5, size=(800, 3))
+    remote = client.register("far", far, faces, depth=4)
+    local = DistanceField(far, faces, depth=4, device="cpu")
+    assert remote.vertices.dtype == np.float64
+    for frame in range(2):
+        moved = far + 0.01 * frame * np.sin(far - far.mean(axis=0))
+        assert remote.update(moved) == local.update(moved)
+        assert_same_answers(remote, local, points)
+    exact = remote.query(points, mode="exact").distance
+    truth = oracle.signed_distance(points, moved, faces)
+    assert np.max(np.abs(exact - truth)) <= EXACT_DISTANCE * oracle.bbox_diagonal(moved)
+
+
+def test_an_empty_batch_is_answered_empty(client: Client) -> None:
+    """A contact loop with no candidate points in some frame: the engine answers empty arrays, and the
+    service refused the request (ShapeError: at least 1 point)."""
+    vertices, faces = meshes.load("spot")
+    remote = client.register("cow", vertices, faces, depth=4)
+    local = DistanceField(vertices, faces, depth=4, device="cpu")
+    assert_same_answers(remote, local, np.zeros((0, 3), np.float32))
+    assert remote.query(np.zeros((0, 3)), outputs=ALL_OUTPUTS).normal.shape == (0, 3)
+
+
+def test_a_refused_update_leaves_what_reregister_restores(client: Client) -> None:
+    """An update the engine refuses (a coordinate beyond 1e18) replaced the handle's vertices, so a later
+    reregister() sent the refused frame again and failed with it; the last good vertices were gone."""
+    vertices, faces = meshes.load("sphere")
+    obj = client.register("ball", vertices, faces, depth=4)
+    good = vertices * np.float32(1.1)
+    assert obj.update(good) == 1
+    bad = good.copy()
+    bad[0, 0] = 1e19  # finite in float32, beyond what the engine takes
+    with pytest.raises(RejectedInputError):
+        obj.update(bad)
+    np.testing.assert_array_equal(obj.vertices, good)
+    assert obj.frame == 2  # the refused frame used its number: later frames count on from it
+    obj.delete()
+    obj.reregister()
+    assert obj.query(np.zeros((1, 3), np.float32), mode="exact").frame == 2
+    np.testing.assert_array_equal(obj.mesh().vertices, good)
 
 
 def test_slices_answer_like_the_engine(client: Client) -> None:
