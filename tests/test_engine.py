@@ -841,6 +841,24 @@ def test_parts_touching_at_a_point_keep_their_own_vertex_normals(device):
             assert np.array_equal(np.sign(got), np.sign(truth[clear])), (lift, mode)
 
 
+def test_unsigned_adf_normals_near_a_sheet_point_away_from_it(device):
+    """|d| interpolated across an open sheet is a V-shaped valley: within a finest cell of the sheet the
+    ADF's gradient pointed towards the sheet for 47% of the points (and was zero on it), so a penalty force
+    along it pulled cloth through. There the normal is now the direction from the nearest corner's face."""
+    vertices, faces = meshes.sheet()
+    field = DistanceField(vertices, faces, depth=6, sign="none", device=device)
+    cell = field.info()["domain"]["finest_cell"]
+    rng = np.random.default_rng(61)
+    on = meshes.surface_samples(vertices, faces, 2, rng)
+    points = np.concatenate([on, on + rng.normal(size=on.shape) * 0.5 * cell])
+    truth = oracle.nearest(points, vertices, faces)
+    got = field.query(points, mode="adf", outputs=("distance", "normal"))
+    np.testing.assert_allclose(np.linalg.norm(got.normal, axis=1), 1.0, atol=1e-5)
+    off = truth.distance > 1e-3 * cell  # off the sheet: away from the closest point
+    away = (points[off] - truth.closest_point[off]) / truth.distance[off, None]
+    assert np.mean(np.einsum("ij,ij->i", got.normal[off], away) > 0.0) >= 0.99
+
+
 @pytest.mark.parametrize("sign", ["auto", "winding", "none"])
 def test_exact_normals_on_the_surface_are_the_faces(device, sign):
     """Points on faces (within float32's rounding of them): the direction from the closest point is rounding

@@ -730,6 +730,7 @@ def _make_winding_kernel() -> wp.Kernel:
 def _make_query_kernel(method: int) -> wp.Kernel:
     pseudonormal = method == SIGN_PSEUDONORMAL
     winding = method == SIGN_WINDING
+    unsigned = not (pseudonormal or winding)
 
     def query_points(
         points: wp.array(dtype=wp.vec3),
@@ -803,7 +804,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                             has_outside = True
                         if not (band > 0.0 and wp.abs(v) >= band):  # a clamped value bounds nothing
                             farthest = wp.max(farthest, wp.abs(v))
-                        nearest = wp.min(nearest, wp.abs(v))
+                    nearest = wp.min(nearest, wp.abs(v))
                     weight = wx * wy * wz
                     value += weight * v
                     grad += v * wp.vec3((2.0 * cx - 1.0) * wy * wz, (2.0 * cy - 1.0) * wx * wz, (2.0 * cz - 1.0) * wx * wy)
@@ -818,6 +819,20 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 beyond = band > 0.0 and wp.abs(value) >= band  # at the band: no face, no closest point, no normal
                 if length > 0.0 and not beyond:
                     unit = grad / length
+                if wp.static(unsigned):
+                    # |d| interpolated across a sheet has a V-shaped valley whose gradient is zero or points
+                    # towards the sheet within a cell of it; there the direction from the nearest corner's face
+                    # is the normal (off the face: away from it; on it: the face's own)
+                    if (outputs & (_OUT_NORMAL | _OUT_CLOSEST)) != 0 and not beyond and nearest <= diagonal:
+                        near_leaf = corner_leaf[nearest_corner]
+                        a, b, c = leaf_triangle(bvh, near_leaf)
+                        foot, _feature = closest_point_on_triangle(p, a, b, c)
+                        away = p - foot
+                        away_length = wp.length(away)
+                        if away_length * inv_side > _SURFACE_SNAP:
+                            unit = away / away_length
+                        else:
+                            unit = _face_normal(bvh, near_leaf)
                 clear = scale > 1 or farthest > diagonal or nearest > 0.5 * diagonal
                 if not (has_inside and has_outside and clear):
                     if outputs & _OUT_DISTANCE:
