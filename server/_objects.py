@@ -310,6 +310,8 @@ class ServedObject:
                 self._lock.notify_all()
                 return
         request.fail(refusal)
+        if isinstance(refusal, WorkerBusyError):  # an error the caller sees, so the stats count it
+            self._note_answered(refusal)
 
     # --- the object's thread ---------------------------------------------------------------------------
 

@@ -152,7 +152,8 @@ class Worker:
         self._started_at = time.monotonic()
         self._registrar = threading.Thread(target=self._register_loop, name="badf-registrar", daemon=True)
         self._registered_total = 0
-        self._retired = Counters()  # what deleted objects had counted, so totals never go backwards
+        self._retired = Counters()  # what deleted objects had counted (totals never go backwards), and
+        # the errors registrations were answered with
         self._last_totals = Counters()
         self._last_stats_at = time.monotonic()
 
@@ -228,6 +229,13 @@ class Worker:
                 self._lock.notify_all()
         if refusal is not None:
             refuse(query, refusal)
+            if isinstance(refusal, WorkerBusyError):
+                self._count_error()
+
+    def _count_error(self) -> None:
+        """A registration answered with an error: the stats line's errors count it with the objects' own."""
+        with self._lock:
+            self._retired.errors += 1
 
     def _register_loop(self) -> None:
         while True:
@@ -236,7 +244,14 @@ class Worker:
                 if self._closing:
                     return
                 query = self._registrations.popleft()
-            answer(query, self._keys.worker_register(self.worker_id), lambda: self._register(query.payload))
+            answer(query, self._keys.worker_register(self.worker_id), lambda: self._register_counted(query.payload))
+
+    def _register_counted(self, payload: zenoh.ZBytes | None) -> ObjectInfo:
+        try:
+            return self._register(payload)
+        except BadfError:
+            self._count_error()
+            raise
 
     def _register(self, payload: zenoh.ZBytes | None) -> ObjectInfo:
         limits = self.settings.limits

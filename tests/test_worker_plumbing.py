@@ -208,7 +208,9 @@ def test_a_full_queue_is_answered_busy(worker: ThreadWorker, client: Client, raw
     assert worker.fields[0].updates_started.acquire(timeout=20)
     payload = encode(QueryRequest("blob", POINTS))
     waiting = [raw.get(KEYS.object_query("blob"), payload=payload, timeout=20) for _ in range(4)]  # fills the queue
+    errors_before = worker.running.totals().errors
     wait_until(lambda: _queue_is_full(raw, payload), what="a busy answer")
+    assert worker.running.totals().errors > errors_before  # the stats line counts BUSY answers as errors
     worker.fields[0].gate.set()
     for handler in waiting:
         [reply] = list(handler)
@@ -311,6 +313,18 @@ def test_mesh_follows_the_applied_frame(worker: ThreadWorker, client: Client, ra
     replaced.delete()
     with pytest.raises(ObjectNotFoundError):
         replaced.mesh()
+
+
+def test_failed_registrations_count_as_errors(worker: ThreadWorker, client: Client, raw: zenoh.Session) -> None:
+    """A registration the worker refuses (here a name it holds, sent past the client's own check) counts in
+    the stats line's errors, as refused object requests do."""
+    client.register("blob", VERTICES, FACES)
+    before = worker.running.totals().errors
+    [reply] = list(raw.get(KEYS.worker_register("w1"), payload=encode(RegisterRequest("blob", VERTICES, FACES)),
+                           timeout=20))  # fmt: skip
+    error = decode(reply.err.payload.to_bytes(), ErrorReply)
+    assert isinstance(error_for_code(error.code, error.message), ObjectExistsError)
+    assert worker.running.totals().errors == before + 1
 
 
 def test_client_checks_before_sending(client: Client) -> None:
