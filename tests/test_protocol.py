@@ -247,7 +247,8 @@ def test_wrong_shapes() -> None:
     with pytest.raises(ShapeError, match="but QueryReply.distance has"):
         QueryReply("a", 0, distance=np.zeros(3), normal=np.zeros((4, 3)))
     with pytest.raises(ShapeError):
-        QueryRequest("a", np.zeros((0, 3)))
+        QueryRequest("a", np.zeros((3, 2)))
+    assert QueryRequest("a", np.zeros((0, 3))).points.shape == (0, 3)  # an empty batch is valid: empty answers
     with pytest.raises(ShapeError):
         RegisterRequest("a", VERTICES, FACES[:, :2])
     with pytest.raises(ShapeError, match="together"):
