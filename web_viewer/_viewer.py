@@ -506,7 +506,7 @@ class Viewer:
         self._levels.value = (0, shown.depth)
         self._fit_position_slider(shown)
         self._handles["mesh"] = self._server.scene.add_mesh_simple(
-            "/object/mesh", np.array(mesh.vertices), shown.faces, color=MESH_RGB,
+            "/object/mesh", np.array(mesh.vertices, np.float32), shown.faces, color=MESH_RGB,
             opacity=_opacity(self._mesh_opacity.value), side="double", cast_shadow=False, receive_shadow=False,
             visible=bool(self._show_mesh.value),
         )  # fmt: skip
@@ -571,7 +571,7 @@ class Viewer:
         self._count_requests()
         mesh = shown.remote.mesh(faces=False)
         self._saw_frame(mesh.frame)
-        self._handles["mesh"].vertices = np.array(mesh.vertices)
+        self._handles["mesh"].vertices = np.array(mesh.vertices, np.float32)  # float64 if the client sent it
         shown.mesh_frame = mesh.frame
         with self._lock:
             self._meshes_drawn += 1
