@@ -4,8 +4,6 @@ import argparse
 import importlib
 import sys
 
-from badf.server._mesh_files import MeshFileError
-
 # subcommand -> (module that provides `add_arguments(parser)` and `run(args) -> int`, extra that installs it)
 _SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "serve": ("badf.server._cli", "server", "run a distance-field worker (and, by default, the Zenoh router)"),
@@ -45,8 +43,4 @@ def main(argv: list[str] | None = None) -> int:
     module = _load(name)
     sub = argparse.ArgumentParser(prog=f"badf {name}", description=_SUBCOMMANDS[name][2])
     module.add_arguments(sub)
-    try:
-        return int(module.run(sub.parse_args(rest)) or 0)
-    except MeshFileError as error:  # a --mesh or --sequence file: one line, as for any other bad flag
-        print(f"badf {name}: {error}", file=sys.stderr)
-        return 2
+    return int(module.run(sub.parse_args(rest)) or 0)

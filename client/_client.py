@@ -83,12 +83,13 @@ class Client:
         config_file: str | None = None,
         limits: Limits = DEFAULT_LIMITS,
     ) -> None:
-        timeout = _seconds(timeout)
         endpoints = [connect] if isinstance(connect, str) else list(connect)
         self.keys = KeySpace(namespace)
-        self.timeout = float(timeout)
+        self.timeout = _seconds(timeout)
         self.limits = limits
-        config = zenoh_config(mode="client", connect=endpoints, config_file=config_file, connect_timeout_s=timeout)
+        config = zenoh_config(
+            mode="client", connect=endpoints, config_file=config_file, connect_timeout_s=self.timeout
+        )
         try:
             self._session = zenoh.open(config)
         except zenoh.ZError as error:
@@ -232,9 +233,11 @@ class Client:
         with self._lock:
             return worker in self._gone or (life is not None and self._deaths.get(worker, 0) != life)
 
-    def _is_live(self, worker: str) -> bool:
+    def _gone_error(self, worker: str, name: str | None) -> WorkerUnavailableError:
+        """The error for a worker this client has seen go, saying whether it has come back since."""
         with self._lock:
-            return worker in self._live
+            back = worker in self._live
+        return _worker_gone_error(worker, name, seen_going=True, back=back)
 
     def _life(self, worker: str) -> int:
         """The current life of `worker`, as handles on its objects remember it."""
@@ -252,7 +255,7 @@ class Client:
     def _check_worker(self, worker: str, name: str | None, life: int | None = None) -> None:
         """Raise at once, without a round trip, when the client has seen `worker` go (since `life`)."""
         if self._worker_gone(worker, life):
-            raise _worker_gone_error(worker, name, seen_going=True, back=self._is_live(worker))
+            raise self._gone_error(worker, name)
 
     # --- requests ----------------------------------------------------------------------------------
 
@@ -299,10 +302,10 @@ class Client:
                 # cancelled") rather than with no reply, and one that reached the worker's next life finds
                 # no such object: the same news either way
                 if self._worker_gone(worker, life):
-                    raise _worker_gone_error(worker, name, seen_going=True, back=self._is_live(worker)) from None
+                    raise self._gone_error(worker, name) from None
                 raise
         if self._worker_gone(worker, life):
-            raise _worker_gone_error(worker, name, seen_going=True, back=self._is_live(worker))
+            raise self._gone_error(worker, name)
         raise self._nobody_answered(key, name=name, worker=worker, timeout=timeout)
 
     def _ask_all(self, key: str, request: Message, expect: type[M], *, timeout: float | None) -> list[M]:

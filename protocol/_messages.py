@@ -2,9 +2,10 @@
 
 A message is valid by construction: its constructor checks names, options, shapes, dtypes, finiteness and
 index ranges, and converts arrays to the canonical dtypes (float32 coordinates, int32 indices, uint8
-levels); vertices and query points given as float64 stay float64, so far from the origin they keep
-their precision on the way to the engine, which recentres them in float64. `decode` adds what only the receiver knows: the sizes in the header against its `Limits`, checked
-before any array is created, and the dtypes the wire allows. Every failure raises a `MessageError`
+levels); vertices and query points given as float64 stay float64, so far from the origin they keep their
+precision on the way to the engine, which recentres them in float64. `decode` adds what only the receiver
+knows: the sizes in the header against its `Limits`, checked before any array is created, and the dtypes
+the wire allows. Every failure raises a `MessageError`
 subclass whose message says what was expected and what came.
 
 Shapes below use N vertices, M faces, P points, K octree cells, C corner points, H x W grid samples.
