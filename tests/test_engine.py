@@ -819,6 +819,53 @@ def test_auto_signs_parts_facing_both_ways_or_overlapping_like_the_oracle(device
             assert np.array_equal(np.sign(got), np.sign(truth[clear])), (case, mode)
 
 
+def test_auto_watches_a_deforming_mesh_for_parts_running_into_each_other(device):
+    """Two spheres apart (pseudonormals), then moved into each other by an update, then apart again. Parts
+    that came to overlap were signed by pseudonormals, which say "outside" inside one sphere next to the other's
+    buried surface; `auto` now looks beside the faces every frame and signs such a frame by winding numbers."""
+    vertices, faces = meshes.load("sphere")
+    width = np.ptp(vertices[:, 0])
+    v_apart = np.concatenate([vertices, vertices + [1.5 * width, 0.0, 0.0]])
+    v_into = np.concatenate([vertices, vertices + [0.6 * width, 0.0, 0.0]])
+    f = np.concatenate([faces, faces + len(vertices)])
+    field = DistanceField(v_apart, f, depth=5, device=device)
+    assert field.info()["sign"] == "pseudonormal" and not field.info()["parts_overlap"]
+    rng = np.random.default_rng(67)
+    for frame, overlapping in ((v_into, True), (v_apart, False), (v_into, True)):
+        field.update(frame)
+        info = field.info()
+        assert info["parts_overlap"] is overlapping
+        assert info["sign_this_frame"] == ("winding" if overlapping else "pseudonormal")
+        points = rng.uniform(frame.min(axis=0), frame.max(axis=0), size=(1500, 3))
+        truth = oracle.signed_distance(points, frame, f)
+        clear = np.abs(truth) > 1e-3 * oracle.bbox_diagonal(frame)
+        got = field.query(points[clear], mode="exact").distance
+        assert np.array_equal(np.sign(got), np.sign(truth[clear])), overlapping
+
+
+def test_auto_signs_the_samba_dancer_like_the_oracle_where_it_overlaps_itself(device):
+    """vlasic_samba's dancer runs into itself in some frames (the oracle's |w| reaches 2 in frames 25 and 45).
+    Registered at frame 0 (no overlap: pseudonormals) and updated frame by frame, it had 21 and 16 of about
+    3,700 points near the surface signed outside where they are inside."""
+    frames, faces = meshes.load_sequence("vlasic_samba")
+    field = DistanceField(frames[0], faces, depth=5, device=device)
+    assert field.info()["sign"] == "pseudonormal"
+    rng = np.random.default_rng(71)
+    for k in range(1, 46):
+        field.update(frames[k])
+        if k not in (25, 45):
+            continue
+        v = frames[k].astype(np.float64)
+        diag = oracle.bbox_diagonal(v)
+        points = meshes.surface_samples(v, faces, 1, rng)
+        points = points[rng.choice(len(points), 3000, replace=False)] + rng.normal(size=(3000, 3)) * 0.01 * diag
+        truth = oracle.signed_distance(points, v, faces)
+        clear = np.abs(truth) > 1e-3 * diag
+        assert field.info()["sign_this_frame"] == "winding", k
+        got = field.query(points[clear], mode="exact").distance
+        assert np.array_equal(np.sign(got), np.sign(truth[clear])), k
+
+
 def test_parts_touching_at_a_point_keep_their_own_vertex_normals(device):
     """A cone set on its tip on a cube's corner: the two welded there, and the corner's pseudonormal mixed
     the cone's faces in. When the cone moved away, points beside the cube's corner read inside (-0.054
@@ -857,6 +904,65 @@ def test_unsigned_adf_normals_near_a_sheet_point_away_from_it(device):
     off = truth.distance > 1e-3 * cell  # off the sheet: away from the closest point
     away = (points[off] - truth.closest_point[off]) / truth.distance[off, None]
     assert np.mean(np.einsum("ij,ij->i", got.normal[off], away) > 0.0) >= 0.99
+
+
+def test_unsigned_adf_normals_away_from_the_surface_follow_the_gradient(device):
+    """Outside a closed mesh the unsigned field is the signed one. The direction from the nearest corner's face
+    stood in for the unsigned ADF's gradient within a leaf's diagonal of the surface, many finest cells in a
+    coarse leaf: there it was up to 100 degrees off the oracle's gradient (torus, depth 5), and it changed with
+    coherence (which of the faces tied at a corner its search met first). It now does only in finest leaves,
+    from the nearest of the leaf's corner faces."""
+    vertices, faces = meshes.load("torus")
+    signed = DistanceField(vertices, faces, depth=5, device=device)
+    cell = signed.info()["domain"]["finest_cell"]
+    rng = np.random.default_rng(73)
+    points = rng.uniform(vertices.min(axis=0) - 0.5, vertices.max(axis=0) + 0.5, size=(4000, 3))
+    truth = oracle.nearest(points, vertices, faces)
+    inside = oracle.signed_distance(points, vertices, faces) < 0.0
+    outside = ~inside & (truth.distance > 2.0 * np.sqrt(3.0) * cell)
+    gradient = (points[outside] - truth.closest_point[outside]) / truth.distance[outside, None]
+    expected = signed.query(points[outside], outputs=("distance", "normal"))
+    normals = []
+    for coherence in (True, False):
+        unsigned = DistanceField(vertices, faces, depth=5, sign="none", coherence=coherence, device=device)
+        got = unsigned.query(points[outside], outputs=("distance", "normal"))
+        np.testing.assert_array_equal(got.distance, expected.distance)
+        cosine = np.einsum("ij,ij->i", got.normal, gradient)
+        assert cosine.min() > 0.8, cosine.min()  # the signed field's own: 0.87
+        normals.append(got.normal)
+    np.testing.assert_allclose(normals[0], normals[1], atol=1e-4)
+
+
+@pytest.mark.parametrize("sign", ["auto", "pseudonormal", "winding"])
+def test_exact_normals_on_a_frame_turned_inside_out_point_outward(device, sign):
+    """A sphere updated to its mirror image (its faces then wind inwards; the frame is signed by winding
+    numbers): on its faces the exact normal was the face's own, pointing in, while a hair off the surface
+    it pointed out. It now points to the side where the winding number is smaller, out."""
+    vertices, faces = meshes.load("sphere")
+    field = DistanceField(vertices, faces, depth=4, sign=sign, device=device)
+    mirrored = vertices * np.array([1.0, 1.0, -1.0], np.float32)
+    field.update(mirrored)
+    assert field.info()["sign_this_frame"] == "winding"
+    centroids = mirrored[faces].astype(np.float64).mean(axis=1)
+    outward = centroids / np.linalg.norm(centroids, axis=1, keepdims=True)
+    for offset in (0.0, 1e-3, -1e-3):
+        got = field.query(centroids * (1.0 + offset), mode="exact", outputs=("normal",)).normal
+        assert np.einsum("ij,ij->i", got, outward).min() > 0.99, offset
+
+
+def test_exact_normal_beside_a_degenerate_face_is_a_neighbours(device):
+    """A closed sphere plus a face (a, a, b) lying on its edge a-b: on that edge the degenerate face was the
+    nearest one found and its zero normal came back. The normal now comes from a face beside it that has one."""
+    vertices, faces = meshes.load("sphere")
+    a, b = faces[0, 0], faces[0, 1]
+    extra = np.concatenate([faces, [[a, a, b]]]).astype(np.int32)
+    t = np.linspace(0.05, 0.95, 15)[:, None]
+    edge = (1.0 - t) * vertices[a].astype(np.float64) + t * vertices[b].astype(np.float64)
+    for sign in ("auto", "winding", "none"):
+        field = DistanceField(vertices, extra, depth=4, sign=sign, device=device)
+        for points in (edge, edge * (1.0 + 1e-6)):
+            got = field.query(points, mode="exact", outputs=("distance", "normal"))
+            np.testing.assert_allclose(np.linalg.norm(got.normal, axis=1), 1.0, atol=1e-5, err_msg=sign)
 
 
 @pytest.mark.parametrize("sign", ["auto", "winding", "none"])

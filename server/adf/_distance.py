@@ -21,6 +21,7 @@ from badf.server.adf._bvh import (
     nearest_in_slot,
     nearest_leaf_within,
     spatial_seed,
+    winding_number,
 )
 from badf.server.adf._geometry import (
     atomic_min_packed,
@@ -45,6 +46,8 @@ EXACT_ROUNDING = {"fuse_fp": False}
 wp.set_module_options(EXACT_ROUNDING)
 
 _SURFACE_SNAP = wp.constant(SURFACE_SNAP)
+# How far (in domain sides) off the surface an on-surface exact normal looks for the winding numbers' inside
+_SIDE_STEP = wp.constant(16.0 * SURFACE_SNAP)
 
 # Output selection bits of a point query.
 OUT_DISTANCE = 1
@@ -437,6 +440,27 @@ def _face_normal(bvh: BvhView, leaf: int) -> wp.vec3:
 
 
 @wp.func
+def _surface_normal(tree: OctreeView, corner_leaf: wp.array(dtype=wp.int32), node: int, octant: int, bvh: BvhView,
+                    p: wp.vec3, leaf: int) -> wp.vec3:
+    """The unit normal of `leaf`'s face at a point on it or, where the face has none (it is degenerate: a
+    sliver along another face's edge, say), of the face nearest p among those recorded at the corners of
+    p's octree leaf (node, octant), which has one. Zero only if none of them has one."""
+    n = _face_normal(bvh, leaf)
+    if wp.length_sq(n) > 0.0:
+        return n
+    best_sq = float(3.0e38)
+    for corner in range(8):
+        other = corner_leaf[leaf_corner(tree, node, octant, corner)]
+        m = _face_normal(bvh, other)
+        if wp.length_sq(m) > 0.0:
+            d_sq = leaf_distance_sq(bvh, other, p)
+            if d_sq < best_sq:
+                best_sq = d_sq
+                n = m
+    return n
+
+
+@wp.func
 def _lattice_point(key: wp.int64, origin: wp.vec3, cell: float) -> wp.vec3:
     lattice = morton3_decode(key)
     return origin + wp.vec3(float(lattice[0]), float(lattice[1]), float(lattice[2])) * cell
@@ -758,6 +782,8 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         in_domain = g[0] >= 0.0 and g[1] >= 0.0 and g[2] >= 0.0 and g[0] <= top and g[1] <= top and g[2] <= top
 
         seed = int(-1)
+        node = int(0)
+        octant = int(0)
         if in_domain:
             cell = quantize(p, tree.origin, 1.0 / tree.cell, resolution)
             node, octant, level = locate(tree, cell)
@@ -823,8 +849,20 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                     # |d| interpolated across a sheet has a V-shaped valley whose gradient is zero or points
                     # towards the sheet within a cell of it; there the direction from the nearest corner's face
                     # is the normal (off the face: away from it; on it: the face's own)
-                    if (outputs & (_OUT_NORMAL | _OUT_CLOSEST)) != 0 and not beyond and nearest <= diagonal:
+                    # (only in a finest leaf, which the surface may cross: in a coarser one the interpolated
+                    # gradient holds)
+                    near = scale == 1 and nearest <= diagonal
+                    if (outputs & (_OUT_NORMAL | _OUT_CLOSEST)) != 0 and not beyond and near:
+                        # the face nearest p of those recorded at the leaf's corners (a corner's own may be one
+                        # of several tied there, whichever its search met first)
                         near_leaf = corner_leaf[nearest_corner]
+                        near_sq = leaf_distance_sq(bvh, near_leaf, p)
+                        for corner in range(8):
+                            other = corner_leaf[leaf_corner(tree, node, octant, corner)]
+                            other_sq = leaf_distance_sq(bvh, other, p)
+                            if other_sq < near_sq:
+                                near_sq = other_sq
+                                near_leaf = other
                         a, b, c = leaf_triangle(bvh, near_leaf)
                         foot, _feature = closest_point_on_triangle(p, a, b, c)
                         away = p - foot
@@ -832,7 +870,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                         if away_length * inv_side > _SURFACE_SNAP:
                             unit = away / away_length
                         else:
-                            unit = _face_normal(bvh, near_leaf)
+                            unit = _surface_normal(tree, corner_leaf, node, octant, bvh, p, near_leaf)
                 clear = scale > 1 or farthest > diagonal or nearest > 0.5 * diagonal
                 if not (has_inside and has_outside and clear):
                     if outputs & _OUT_DISTANCE:
@@ -900,9 +938,19 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 if inside:
                     n = -n
             else:
-                n = _face_normal(bvh, leaf)
                 if wp.static(pseudonormal):
                     n = feature_normal(sign, face, feature)
+                if wp.length_sq(n) == 0.0:
+                    n = _surface_normal(tree, corner_leaf, node, octant, bvh, p, leaf)
+                by_winding = wp.static(winding)
+                if wp.static(pseudonormal):
+                    by_winding = sign.winding_frame[0] != 0  # a frame inside out, flat, or overlapping itself
+                if by_winding:
+                    # outward for the winding numbers' inside, whichever way the face winds: towards the
+                    # side where |w| is smaller
+                    step = n * (_SIDE_STEP / inv_side)
+                    if wp.abs(winding_number(bvh, p + step)) > wp.abs(winding_number(bvh, p - step)):
+                        n = -n
             out_normal[i] = n
         if outputs & _OUT_CLOSEST:
             out_closest[i] = closest

@@ -46,6 +46,7 @@ from badf.server.adf._sign import (
     encloses_volume,
     face_components,
     face_volumes,
+    frame_watch_order,
     resolve_sign,
     spread_sample,
     surface_enters_solid,
@@ -57,8 +58,8 @@ from badf.server.adf._tolerances import (
     MIN_BAND,
     QUERY_CHUNK,
     REDOMAIN_MIN_FILL,
-    SOLID_BESIDE_REACH,
     SOLID_BESIDE_SAMPLE,
+    SOLID_WATCH_SAMPLE,
 )
 
 log = logging.getLogger("badf.server")
@@ -282,12 +283,15 @@ class DistanceField:
 
         with _device_lock(self._device):
             self._build(local, f, len(v), area, extent)
-            # parts nested or running into each other are signed by winding numbers (surface_enters_solid)
+            # parts nested or running into each other are signed by winding numbers (surface_enters_solid):
+            # every frame, if they are in the first; else each frame they are found to be, from then on
             self._parts_overlap = False
             if self._sign_requested == "auto" and self._sign == "pseudonormal":
                 self._parts_overlap = surface_enters_solid(
                     self._bvh.view(), self._vertices, self._faces, spread_sample(parts, SOLID_BESIDE_SAMPLE),
-                    SOLID_BESIDE_REACH * extent, self._device)
+                    self._normals.extent, self._device)
+                if not self._parts_overlap:
+                    self._normals.watch_parts(frame_watch_order(len(f)), SOLID_WATCH_SAMPLE)
             if self._parts_overlap:
                 self._sign = "winding"
                 self._normals = Pseudonormals(self._sign, self._topology, self._faces, self._buffers)
@@ -503,7 +507,8 @@ class DistanceField:
             "failed_update": self._failed_update,
             "orientation_flipped": self._flipped,
             "parts_face_both_ways": self._parts_disagree,
-            "parts_overlap": self._parts_overlap,
+            # found in the first frame (and every frame then signed by winding numbers), or in this one
+            "parts_overlap": self._parts_overlap or self._normals.frame_parts_overlap,
             "topology": self._topology.summary(),
             "domain": {"centre": self._domain.centre.tolist(), "side": self._domain.side,
                        "finest_cell": self._domain.side / (1 << self._depth)},
@@ -606,7 +611,7 @@ class DistanceField:
             with clock.stage("refit"):
                 self._bvh.refit(self._vertices, self._faces)
             with clock.stage("normals"):
-                self._normals.update(self._vertices)
+                self._normals.update(self._vertices, self._bvh.view())
         o = self._octree
         o.build(self._vertices, self._faces, self._face_count, origin, side, clock, measure=measure)
         self._beside.join(beside)
@@ -676,6 +681,7 @@ class DistanceField:
         k = len(sizes)
         wp.copy(self._report, self._normals.winding_frame, dest_offset=k, count=1)
         wp.copy(self._report, self._octree.level_starts, dest_offset=k + 1, count=self._depth + 1)
+        wp.copy(self._report, self._normals.parts_overlap, dest_offset=k + 2 + self._depth, count=1)
         return sizes
 
     def _take_report(self) -> bool:
@@ -688,7 +694,7 @@ class DistanceField:
         if any(count > capacity for count, capacity in zip(counts, self._report_sizes)):
             return False
         self._octree.take_counts(counts, report[k + 1 : k + 2 + self._depth])
-        self._normals.set_frame_method(int(report[k]))
+        self._normals.set_frame_method(int(report[k]), int(report[k + 2 + self._depth]))
         return True
 
     # -- for tests and tools --------------------------------------------------------------------------

@@ -16,7 +16,7 @@ import warp as wp
 from badf.server.adf._buffers import DeviceBuffers
 from badf.server.adf._bvh import BvhView, winding_number
 from badf.server.adf._geometry import EDGE_AB, EDGE_BC, FACE, VERTEX_A, VERTEX_B, VERTEX_C
-from badf.server.adf._tolerances import DEGENERATE_AREA, MIN_ENCLOSED_VOLUME
+from badf.server.adf._tolerances import DEGENERATE_AREA, MIN_ENCLOSED_VOLUME, SOLID_BESIDE_REACH
 
 SignMethod = Literal["auto", "pseudonormal", "winding", "none"]
 SIGN_METHODS: tuple[str, ...] = ("auto", "pseudonormal", "winding", "none")
@@ -28,6 +28,7 @@ SIGN_WINDING = 2
 _SIGN_CODES = {"none": SIGN_NONE, "pseudonormal": SIGN_PSEUDONORMAL, "winding": SIGN_WINDING}
 _DEGENERATE = wp.constant(DEGENERATE_AREA)
 _MIN_ENCLOSED = wp.constant(MIN_ENCLOSED_VOLUME)
+_BESIDE_REACH = wp.constant(SOLID_BESIDE_REACH)
 
 
 @dataclass(frozen=True)
@@ -220,21 +221,29 @@ def spread_sample(label: np.ndarray, limit: int) -> np.ndarray:
     return order[starts[part] + ((2 * rank + 1) * sizes[part]) // (2 * share[part])].astype(np.int32)
 
 
-def surface_enters_solid(bvh: BvhView, vertices: wp.array, faces: wp.array, sample: np.ndarray, reach: float,
-                         device) -> bool:
+def surface_enters_solid(bvh: BvhView, vertices: wp.array, faces: wp.array, sample: np.ndarray,
+                         extent: wp.array, device) -> bool:
     """Whether any sampled face (`spread_sample`) of a closed, outward-facing mesh has the solid just
-    outside it: a point `reach` off its centroid, along its normal, with |winding number| > 1/2.
+    outside it: a point SOLID_BESIDE_REACH of the mesh's `extent` (a (1,) device array) off its centroid,
+    along its normal, with |winding number| > 1/2.
 
     That is the case where parts are nested (a shell inside a shell facing the same way) or run into each
     other or themselves. Pseudonormals then say "outside" between the inner surface and the outer one,
     where the winding number says inside; so `auto` takes winding numbers. On a mesh without that, every
-    such point has a winding number near 0.
+    such point has a winding number near 0. (`Pseudonormals.watch_parts` repeats the check every frame.)
     """
     faces_of = wp.array(sample, dtype=wp.int32, device=device)
+    start = wp.zeros(1, dtype=wp.int32, device=device)
     found = wp.zeros(1, dtype=wp.int32, device=device)
-    wp.launch(_solid_beside_face, dim=len(sample), inputs=[bvh, vertices, faces, faces_of, reach], outputs=[found],
-              device=device)
+    wp.launch(_solid_beside_face, dim=len(sample), inputs=[bvh, vertices, faces, faces_of, start, extent],
+              outputs=[found], device=device)
     return bool(found.numpy()[0])
+
+
+def frame_watch_order(face_count: int) -> np.ndarray:
+    """Every face once, in an order whose every run of consecutive entries is spread over the whole mesh
+    (a fixed pseudo-random permutation, so two objects of one mesh check the same faces frame by frame)."""
+    return np.random.default_rng(0).permutation(face_count).astype(np.int32)
 
 
 def resolve_sign(requested: str, topology: Topology, solid: bool) -> str:
@@ -278,7 +287,7 @@ class SignView:
     face_normal: wp.array(dtype=wp.vec3)  # unit, zero for a degenerate face
     vertex_normal: wp.array(dtype=wp.vec3)  # angle-weighted pseudonormal, unit or zero
     edge_normal: wp.array(dtype=wp.vec3)  # sum of the adjacent face normals, unit or zero
-    winding_frame: wp.array(dtype=wp.int32)  # (1,) nonzero: this frame encloses nothing, sign by winding
+    winding_frame: wp.array(dtype=wp.int32)  # (1,) nonzero: this frame encloses nothing or its parts overlap: by winding
 
 
 class Pseudonormals:
@@ -313,21 +322,49 @@ class Pseudonormals:
         self.volume_area = b.array("sign.volume_area", 2, wp.float32)  # this frame's enclosed volume, area
         self.extent = b.array("sign.extent", 1, wp.float32)  # this frame's largest bounding-box side
         self.winding_frame = b.array("sign.winding_frame", 1, wp.int32)
+        # whether this frame's watched faces found parts running into each other (watch_parts)
+        self.parts_overlap = b.array("sign.parts_overlap", 1, wp.int32)
+        self._buffers = b
+        self._watched: wp.array | None = None
+        self._window_start = None
+        self.watch_per_frame = 0
         # what the last frame used (set_frame_method): pseudonormal frames that enclose nothing use winding
         self.frame_method = method
+        self.frame_parts_overlap = False
 
     def upload_extent(self, extent: float) -> None:
         """The frame's extent, which the enclosed-volume test scales with (sent with the vertices)."""
         if self.method == "pseudonormal":
             self.extent.fill_(extent)
 
-    def update(self, vertices: wp.array) -> None:
-        """This frame's normals, and whether it encloses volume (decided on the device, read with the report).
+    def watch_parts(self, order: np.ndarray, per_frame: int) -> None:
+        """From the next frame on, look beside `per_frame` faces of `order` each frame, a window that moves on
+        through it frame by frame, for parts running into each other (surface_enters_solid), and sign a frame
+        where they do by winding numbers. For `auto`, whose first frame had none: a deforming mesh may come
+        to overlap itself (an arm through the body)."""
+        if self.method != "pseudonormal" or len(order) == 0:
+            return
+        self._watched = self._buffers.array("sign.watched_faces", len(order), wp.int32)
+        self._watched.assign(order)
+        self._window_start = self._buffers.array("sign.window_start", 1, wp.int32)
+        self.watch_per_frame = min(int(per_frame), len(order))
 
-        Pseudonormals hold only while the mesh encloses volume, outward: a frame collapsed flat or turned
-        inside out (its faces then coincide or face inwards) is signed by winding numbers instead."""
+    def update(self, vertices: wp.array, bvh: BvhView) -> None:
+        """This frame's normals, and whether it encloses volume and, where watched, whether its parts run
+        into each other (decided on the device, read with the report).
+
+        Pseudonormals hold only while the mesh encloses volume, outward, with no part inside another: a frame
+        collapsed flat or turned inside out (its faces then coincide or face inwards), or one whose parts run
+        into each other, is signed by winding numbers instead. `bvh` must have been refitted to `vertices`."""
         if self.method != "pseudonormal":
             return
+        self.parts_overlap.zero_()
+        if self._watched is not None:
+            wp.launch(_solid_beside_face, dim=self.watch_per_frame,
+                      inputs=[bvh, vertices, self.faces, self._watched, self._window_start, self.extent],
+                      outputs=[self.parts_overlap], device=self.device)
+            wp.launch(_advance_window, dim=1, inputs=[self._window_start, self.watch_per_frame, len(self._watched)],
+                      device=self.device)
         self.volume_area.zero_()
         wp.launch(_face_normals, dim=self.face_count, inputs=[vertices, self.faces],
                   outputs=[self.face_normal, self.face_angles, self.volume_area], device=self.device)
@@ -336,12 +373,13 @@ class Pseudonormals:
                   outputs=[self.vertex_normal], device=self.device)
         wp.launch(_edge_normals, dim=self.edge_count + 1, inputs=[self.edge_face_start, self.edge_face, self.face_normal],
                   outputs=[self.edge_normal], device=self.device)
-        wp.launch(_choose_frame_method, dim=1, inputs=[self.volume_area, self.extent], outputs=[self.winding_frame],
-                  device=self.device)
+        wp.launch(_choose_frame_method, dim=1, inputs=[self.volume_area, self.extent, self.parts_overlap],
+                  outputs=[self.winding_frame], device=self.device)
 
-    def set_frame_method(self, winding_frame: int) -> None:
-        """Record what the last frame used, from its report."""
+    def set_frame_method(self, winding_frame: int, parts_overlap: int) -> None:
+        """Record what the last frame used, and whether its watched faces found parts overlapping, from its report."""
         self.frame_method = "winding" if self.method == "pseudonormal" and winding_frame else self.method
+        self.frame_parts_overlap = bool(parts_overlap)
 
     @property
     def code(self) -> int:
@@ -390,25 +428,32 @@ def inside_by_pseudonormal(sign: SignView, bvh: BvhView, p: wp.vec3, face: int, 
 
 @wp.kernel(enable_backward=False)
 def _solid_beside_face(bvh: BvhView, vertices: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.vec3i),
-                       faces_of: wp.array(dtype=wp.int32), reach: float, found: wp.array(dtype=wp.int32)):
-    tri = faces[faces_of[wp.tid()]]
+                       faces_of: wp.array(dtype=wp.int32), start: wp.array(dtype=wp.int32),
+                       extent: wp.array(dtype=wp.float32), found: wp.array(dtype=wp.int32)):
+    """The faces_of[(start + i) mod len] for this launch's i (see surface_enters_solid)."""
+    tri = faces[faces_of[(start[0] + wp.tid()) % faces_of.shape[0]]]
     a, b, c = vertices[tri[0]], vertices[tri[1]], vertices[tri[2]]
     n = wp.cross(b - a, c - a)
     length = wp.length(n)
     longest_sq = wp.max(wp.max(wp.length_sq(b - a), wp.length_sq(c - b)), wp.length_sq(a - c))
     if length <= _DEGENERATE * longest_sq or length == 0.0:
         return  # no direction to step in
-    beside = (a + b + c) / 3.0 + n * (reach / length)
+    beside = (a + b + c) / 3.0 + n * (_BESIDE_REACH * extent[0] / length)
     if wp.abs(winding_number(bvh, beside)) > 0.5:
         found[0] = 1
 
 
 @wp.kernel(enable_backward=False)
+def _advance_window(start: wp.array(dtype=wp.int32), step: int, count: int):
+    start[0] = (start[0] + step) % count
+
+
+@wp.kernel(enable_backward=False)
 def _choose_frame_method(volume_area: wp.array(dtype=wp.float32), extent: wp.array(dtype=wp.float32),
-                         winding_frame: wp.array(dtype=wp.int32)):
+                         parts_overlap: wp.array(dtype=wp.int32), winding_frame: wp.array(dtype=wp.int32)):
     volume = volume_area[0]
     encloses = wp.abs(volume) > _MIN_ENCLOSED * volume_area[1] * extent[0]
-    winding_frame[0] = wp.where(volume > 0.0 and encloses, 0, 1)
+    winding_frame[0] = wp.where(volume > 0.0 and encloses and parts_overlap[0] == 0, 0, 1)
 
 
 @wp.kernel(enable_backward=False)
