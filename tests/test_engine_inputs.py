@@ -25,6 +25,7 @@ VERTICES, FACES = meshes.single_triangle()
         ({"faces": np.array([[0, 1, -1]])}, "first at row 0"),
         ({"faces": np.zeros((0, 3), int)}, "faces must not be empty"),
         ({"faces": np.array([[0.0, 1.0, 2.0]])}, "integer vertex indices, got dtype float64"),
+        ({"faces": np.array([[True, False, True]])}, "faces must hold integers, got dtype bool"),
         ({"faces": np.array([0, 1, 2])}, r"faces must have shape \(count, 3\)"),
         ({"depth": 0}, "depth must be in 1..10, got 0"),
         ({"depth": 11}, "depth must be in 1..10"),
@@ -91,6 +92,7 @@ def test_empty_query_and_unrequested_outputs(device):
         ({"axis": "w"}, "axis must be 'x', 'y' or 'z'"),
         ({"position": float("nan")}, "position must be finite"),
         ({"position": 10**400}, "position must be finite"),
+        ({"position": 1e19}, r"position must lie within \+-1e\+18, got 1e\+19"),
         ({"resolution": 0}, "resolution must be 1..2048"),
         ({"resolution": (10, 5000)}, "resolution must be 1..2048"),
         ({"resolution": "16"}, r"resolution must be an int or \(cols, rows\) of ints"),
@@ -194,3 +196,18 @@ def test_an_update_that_fails_on_the_way_leaves_no_wrong_answers(device, monkeyp
     for mode in ("adf", "exact"):
         np.testing.assert_allclose(field.query(points, mode=mode).distance, fresh.query(points, mode=mode).distance,
                                    rtol=0, atol=1e-6)
+
+
+def test_info_says_which_band_is_in_force_after_the_domain_grew(device):
+    """A band near the smallest one is widened with a domain that grows (to 2^-40 of its side, what float32
+    resolves); info() reported only the band asked for, while far points were clamped at the wider one."""
+    vertices, faces = meshes.sphere()
+    side = DistanceField(vertices, faces, depth=3, device=device).info()["domain"]["side"]
+    band = 4 * 2.0**-40 * side
+    field = DistanceField(vertices, faces, depth=3, band=band, device=device)
+    assert field.info()["band_in_force"] == pytest.approx(band)
+    field.update(vertices * 1e6)
+    in_force = field.info()["band_in_force"]
+    assert field.info()["band"] == band and in_force > 1e3 * band
+    far = field.query(np.array([[5e6, 0.0, 0.0]]), mode="exact").distance[0]
+    assert far == pytest.approx(in_force, rel=1e-6)

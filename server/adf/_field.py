@@ -19,6 +19,7 @@ from badf.server.adf._bvh import Bvh
 from badf.server.adf._clock import StageClock
 from badf.server.adf._distance import OUTPUT_BITS, CornerField, PointQuery
 from badf.server.adf._inputs import (
+    MAX_COORDINATE,
     QUERY_MODES,
     REFINEMENTS,
     InvalidInputError,
@@ -446,6 +447,8 @@ class DistanceField:
         self._check_field()
         axis_index = check_axis(axis)
         position = check_finite_number(position, "position")
+        if abs(position) > MAX_COORDINATE:
+            raise InvalidInputError(f"position must lie within +-{MAX_COORDINATE:g}, got {position:g}")
         rows, cols = check_resolution(resolution)
         max_level = self._depth if max_level is None else check_level(max_level, self._depth)
         centre, half = self._domain.centre, self._domain.side / 2.0
@@ -501,6 +504,8 @@ class DistanceField:
             "sign_requested": self._sign_requested,
             "sign_this_frame": self._normals.frame_method,
             "band": self._band,
+            # the band the searches clamp at: the one asked for, or MIN_BAND of a domain that has grown since
+            "band_in_force": None if self._band is None else self._domain.local_band(self._band) / self._domain.scale,
             "coherence": self._coherence,
             "refine": self._refine,
             "halo": self._halo,

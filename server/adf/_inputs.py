@@ -26,7 +26,8 @@ def _numeric_array(value, name: str) -> np.ndarray:
     except (TypeError, ValueError) as error:
         raise InvalidInputError(f"{name} must be an array of numbers: {error}") from None
     if arr.dtype.kind not in "fiu":
-        raise InvalidInputError(f"{name} must hold numbers (float or int), got dtype {arr.dtype}")
+        kinds = "integers" if name == "faces" else "numbers (float or int)"
+        raise InvalidInputError(f"{name} must hold {kinds}, got dtype {arr.dtype}")
     return arr
 
 
