@@ -520,7 +520,7 @@ def print_search_split(sweep: dict) -> None:
 
 
 def _write_part(args: argparse.Namespace, benchmark: str, device: str, faces, results: dict) -> None:
-    """Write one of the single-part runs (--kernels, --far-sweep, --split-sweep) as JSON, where --out asks."""
+    """Write one of the single-part runs (--kernels, --far-sweep, --split-sweep, --sign-sweep) as JSON, where --out asks."""
     if args.out:
         with open(args.out, "w") as f:
             json.dump({"benchmark": benchmark, "date": timestamp(), "device": bench_device_name(device),
@@ -565,6 +565,23 @@ def run(args: argparse.Namespace) -> int:
                           f"{r['max_difference_diag']:.2g}", r["sign_flips"], r["face_differences"]]
                          for r in sweep["settings"]])
         _write_part(args, "engine-far-corners", device, faces, {"repeat": repeat, "sweeps": sweeps})
+        return 0
+    if args.sign_sweep:
+        rows, results = [], []
+        for sign in ("auto", "pseudonormal", "winding", "none"):
+            result = measure_field(vertices, faces, device=device, repeat=repeat, depth=args.depth, sign=sign)
+            info = result.pop("field").info()
+            result.pop("vertices")
+            result.update(sign_resolved=info["sign"], parts_overlap=info["parts_overlap"])
+            results.append(result)
+            stages = result["update_stages_ms"]
+            rows.append([sign, info["sign"], result["update_gpu_ms"], result["update_wall_ms"], stages.get("normals", 0.0),
+                         stages.get("distances", 0.0), result["build_gpu_ms"]])
+        print_table(f"updates by sign, depth {args.depth}, {args.mesh} ({len(faces)} triangles), median of {repeat}; "
+                    "'normals' is the sign data's stage (with auto on a closed mesh: the check for parts running into "
+                    "each other)", ["sign", "resolved", "update device ms", "update wall ms", "normals ms",
+                                    "distances ms", "build device ms"], rows)
+        _write_part(args, "engine-signs", device, faces, {"repeat": repeat, "depth": args.depth, "signs": results})
         return 0
     if args.split_sweep:
         sweeps = []
@@ -653,6 +670,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "depths, against off")
     parser.add_argument("--split-sweep", type=int, nargs="+", metavar="DEPTH",
                         help="only time the corner stage with long searches shared out or not, at these depths")
+    parser.add_argument("--sign-sweep", action="store_true",
+                        help="only time builds and updates under each sign method (auto, pseudonormal, winding, none)")
     parser.add_argument("--kernels", action="store_true",
                         help="only profile a default update kernel by kernel (CUDA activity timing)")
     parser.add_argument("--block-sweep", action="store_true",

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One call on a GPU machine (the device tool): set up, check on CUDA, then time.
-#   bash bench/gpu_session.sh [tests] [engine] [split] [far] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] ...
+#   bash bench/gpu_session.sh [tests] [engine] [signs] [split] [far] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] ...
 # Expects warp-lang and the wheels unpacked by ../shared/gpu/setup.sh (sourced before), the shared meshes
 # copied into $BADF_SHARED_DATA (default .gpudata/), and writes logs and JSON under $OUT.
 set -uo pipefail
@@ -18,6 +18,10 @@ for step in "$@"; do
     engine)
       python3 -m badf.bench.engine --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --out "$out/engine-bunny.json" \
         2>&1 | tee "$out/engine-bunny.log" ;;
+    signs)
+      # each sign method on a closed mesh: what auto's per-frame check for parts running into each other costs
+      python3 -m badf.bench.engine --mesh "$BADF_SHARED_DATA/armadillo-86k.npz" --repeat 15 --sign-sweep \
+        --out "$out/signs-armadillo.json" 2>&1 | tee "$out/signs-armadillo.log" | grep -v '^Module' ;;
     split)
       # the corner stage with long searches shared out over BVH subtrees or not, at depths 5 to 8
       python3 -m badf.bench.engine --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --repeat 15 --split-sweep 5 6 7 8 \

@@ -40,3 +40,17 @@ def test_engine_benchmark_runs(tmp_path: Path) -> None:
     assert first["moving_domain_moves"] == 3 and first["moving_measured_frames"] == 1  # the build only
     assert 0 <= first["adf_vs_exact_max_error_diag"] < 1
     assert report["dense_baseline"]["query_ms"] > 0
+
+
+def test_engine_sign_sweep_runs(tmp_path: Path) -> None:
+    """`badf bench engine --sign-sweep`: each sign method resolved as asked (auto: pseudonormals on a closed
+    mesh), with its update's stage times."""
+    out = tmp_path / "signs.json"
+    parser = argparse.ArgumentParser()
+    _cli.add_arguments(parser)
+    flags = ["--mesh", str(meshes.data_file("spot")), "--device", "cpu", "--depth", "3", "--repeat", "2", "--sign-sweep"]
+    assert _cli.run(parser.parse_args(["engine", *flags, "--out", str(out)])) == 0
+    report = json.loads(out.read_text())
+    resolved = {r["options"]["sign"]: r["sign_resolved"] for r in report["signs"]}
+    assert resolved == {"auto": "pseudonormal", "pseudonormal": "pseudonormal", "winding": "winding", "none": "none"}
+    assert all(r["update_gpu_ms"] > 0 and "normals" in r["update_stages_ms"] for r in report["signs"])
