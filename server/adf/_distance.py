@@ -147,14 +147,21 @@ class CornerField:
         self._last_split = _WHOLE
         self._last_far_cells = 0
         self._beside = SideStream(self.device)  # winding numbers and far corners run on it, beside the searches
+        self._choosing = SideStream(self.device)  # and the choice of the frame's sign method (choose_sign) on this
 
     def compute(self, corner_keys: wp.array, count: wp.array, capacity: int, expected_count: int, bvh: BvhView, cuts,
-                sign: SignView, domain, depth: int, band: float | None, *, coherent: bool) -> None:
+                sign: SignView, domain, depth: int, band: float | None, *, coherent: bool,
+                choose_sign=None) -> None:
         """Distances at the corners (lattice keys, the first count[0] of at most `capacity`) of the domain
         (its world centre and side, and the scale to local coordinates), in local units. The count stays on
         the device; `expected_count` (this frame's or last frame's) only chooses how long searches are shared
-        out. `cuts(levels)` gives the BVH's cut that many levels deep (Bvh.cut); `band` is in world units."""
+        out. `cuts(levels)` gives the BVH's cut that many levels deep (Bvh.cut); `band` is in world units.
+        `choose_sign(stream)` queues what decides the frame's sign method on that stream (None: the current
+        one); it runs beside the searches, before the signs."""
         b = self.buffers
+        choosing = self._choosing.fork() if choose_sign is not None else None
+        if choose_sign is not None:
+            choose_sign(choosing)
         self.value = b.ensure("corner.value", capacity, wp.float32)
         self.leaf = b.ensure("corner.leaf", capacity, wp.int32)
         use_previous = coherent and self._previous_capacity > 0
@@ -230,6 +237,7 @@ class CornerField:
             wp.launch(winding_kernel(), dim=capacity, inputs=[corner_keys, count, capacity, origin, cell, bvh],
                       outputs=[inside], device=self.device, block_dim=SIGN_BLOCK_DIM, stream=beside)
         self._beside.join(beside)
+        self._choosing.join(choosing)
         wp.launch(sign_kernel(sign.method), dim=capacity,
                   inputs=[corner_keys, count, capacity, origin, cell, bvh, sign, inside],
                   outputs=[self.value, self.leaf], device=self.device, block_dim=SIGN_BLOCK_DIM)

@@ -616,14 +616,16 @@ class DistanceField:
             with clock.stage("refit"):
                 self._bvh.refit(self._vertices, self._faces)
             with clock.stage("normals"):
-                self._normals.update(self._vertices, self._bvh.view())
+                self._normals.update(self._vertices)
         o = self._octree
         o.build(self._vertices, self._faces, self._face_count, origin, side, clock, measure=measure)
         self._beside.join(beside)
         with clock.stage("distances"):
             self._corners.compute(o.corner_keys, o.corner_set.view.count, o.corner_capacity, o.corner_count,
                                   self._bvh.view(), self._bvh.cut, self._normals.view(), self._domain,
-                                  self._depth, self._band, coherent=self._coherence)
+                                  self._depth, self._band, coherent=self._coherence,
+                                  choose_sign=functools.partial(self._normals.choose_frame_method, self._vertices,
+                                                                self._bvh.view()))
         self._report_sizes = self._queue_report()
 
     def _run_planned(self, domain_moved: bool) -> None:

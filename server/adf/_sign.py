@@ -7,6 +7,7 @@ open, non-manifold or inconsistently oriented, and the adjacency the pseudonorma
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from typing import Literal
 
@@ -349,22 +350,10 @@ class Pseudonormals:
         self._window_start = self._buffers.array("sign.window_start", 1, wp.int32)
         self.watch_per_frame = min(int(per_frame), len(order))
 
-    def update(self, vertices: wp.array, bvh: BvhView) -> None:
-        """This frame's normals, and whether it encloses volume and, where watched, whether its parts run
-        into each other (decided on the device, read with the report).
-
-        Pseudonormals hold only while the mesh encloses volume, outward, with no part inside another: a frame
-        collapsed flat or turned inside out (its faces then coincide or face inwards), or one whose parts run
-        into each other, is signed by winding numbers instead. `bvh` must have been refitted to `vertices`."""
+    def update(self, vertices: wp.array) -> None:
+        """This frame's face, vertex and edge normals, and the volume it encloses."""
         if self.method != "pseudonormal":
             return
-        self.parts_overlap.zero_()
-        if self._watched is not None:
-            wp.launch(_solid_beside_face, dim=self.watch_per_frame,
-                      inputs=[bvh, vertices, self.faces, self._watched, self._window_start, self.extent],
-                      outputs=[self.parts_overlap], device=self.device)
-            wp.launch(_advance_window, dim=1, inputs=[self._window_start, self.watch_per_frame, len(self._watched)],
-                      device=self.device)
         self.volume_area.zero_()
         wp.launch(_face_normals, dim=self.face_count, inputs=[vertices, self.faces],
                   outputs=[self.face_normal, self.face_angles, self.volume_area], device=self.device)
@@ -373,8 +362,27 @@ class Pseudonormals:
                   outputs=[self.vertex_normal], device=self.device)
         wp.launch(_edge_normals, dim=self.edge_count + 1, inputs=[self.edge_face_start, self.edge_face, self.face_normal],
                   outputs=[self.edge_normal], device=self.device)
-        wp.launch(_choose_frame_method, dim=1, inputs=[self.volume_area, self.extent, self.parts_overlap],
-                  outputs=[self.winding_frame], device=self.device)
+
+    def choose_frame_method(self, vertices: wp.array, bvh: BvhView, stream: wp.Stream | None = None) -> None:
+        """Whether this frame is signed by its pseudonormals, decided on the device (read with the report).
+
+        Pseudonormals hold only while the mesh encloses volume, outward, with no part inside another: a frame
+        collapsed flat or turned inside out (its faces then coincide or face inwards), or, where watched, one
+        whose parts run into each other, is signed by winding numbers instead. Queued on `stream` (None: the
+        current one) after `update`'s normals, with `bvh` refitted to `vertices`; the watch is a short launch
+        of long walks, so on CUDA it runs beside the corner searches."""
+        if self.method != "pseudonormal":
+            return
+        with wp.ScopedStream(stream, sync_enter=False) if stream is not None else contextlib.nullcontext():
+            self.parts_overlap.zero_()
+            if self._watched is not None:
+                wp.launch(_solid_beside_face, dim=self.watch_per_frame,
+                          inputs=[bvh, vertices, self.faces, self._watched, self._window_start, self.extent],
+                          outputs=[self.parts_overlap], device=self.device)
+                wp.launch(_advance_window, dim=1, inputs=[self._window_start, self.watch_per_frame, len(self._watched)],
+                          device=self.device)
+            wp.launch(_choose_frame_method, dim=1, inputs=[self.volume_area, self.extent, self.parts_overlap],
+                      outputs=[self.winding_frame], device=self.device)
 
     def set_frame_method(self, winding_frame: int, parts_overlap: int) -> None:
         """Record what the last frame used, and whether its watched faces found parts overlapping, from its report."""
