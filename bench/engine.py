@@ -578,8 +578,8 @@ def run(args: argparse.Namespace) -> int:
             rows.append([sign, info["sign"], result["update_gpu_ms"], result["update_wall_ms"], stages.get("normals", 0.0),
                          stages.get("distances", 0.0), result["build_gpu_ms"]])
         print_table(f"updates by sign, depth {args.depth}, {args.mesh} ({len(faces)} triangles), median of {repeat}; "
-                    "'normals' is the sign data's stage (with auto on a closed mesh: the check for parts running into "
-                    "each other)", ["sign", "resolved", "update device ms", "update wall ms", "normals ms",
+                    "with auto on a closed mesh the distance stage holds the check for parts running into each other "
+                    "(beside the searches on CUDA)", ["sign", "resolved", "update device ms", "update wall ms", "normals ms",
                                     "distances ms", "build device ms"], rows)
         _write_part(args, "engine-signs", device, faces, {"repeat": repeat, "depth": args.depth, "signs": results})
         return 0
