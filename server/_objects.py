@@ -137,7 +137,8 @@ class ServedObject:
         self._limits = limits
         self._max_waiting = max_waiting_requests
         self._on_deleted = on_deleted
-        self._counters = Counters()
+        self._counters = Counters()  # since this registration (the object's info)
+        self._replaced_counters = Counters()  # what the registrations it replaced had counted
         self._last_error: str | None = None
         self._field_info: dict[str, Any] = {}
         self._field_stats: dict[str, Any] = {}
@@ -220,8 +221,11 @@ class ServedObject:
             return len(self._waiting)
 
     def counters(self) -> Counters:
+        """Everything counted under this name since it was first registered, replaced registrations
+        included: the worker's totals, which never go backwards."""
         with self._lock:
-            return Counters(**vars(self._counters))
+            return Counters(**{name: value + getattr(self._replaced_counters, name)
+                               for name, value in vars(self._counters).items()})
 
     def info(self) -> ObjectInfo:
         with self._lock:
@@ -464,6 +468,8 @@ class ServedObject:
                 self._field, self._options, self._frame = field, options, frame
                 self._vertices, self._faces = vertices, faces
                 self._vertex_count, self._face_count = field.vertex_count, field.face_count
+                for name, value in vars(self._counters).items():
+                    setattr(self._replaced_counters, name, getattr(self._replaced_counters, name) + value)
                 self._counters = Counters()
                 self._last_error = None
                 stale, self._pending = list(self._pending.values()), {}

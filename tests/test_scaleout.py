@@ -115,6 +115,16 @@ def test_workers_report_their_load(endpoint: str) -> None:
         assert (info.object_count, info.vertex_count, info.face_count) == (1, len(VERTICES), len(FACES))
         assert (info.frames_applied, info.queries_answered, info.points_answered) == (1, 1, len(POINTS))
         assert info.requests_waiting == 0
+        # a re-registration starts the object's own counts again, not the worker's totals ("frames -5 applied"
+        # in the stats line before): a deleted object's counts stay in them too
+        client.register("blob", VERTICES, FACES, replace=True)
+        assert client.object("blob").info().frames_applied == 0
+        [info] = client.workers()
+        assert (info.frames_applied, info.queries_answered, info.points_answered) == (1, 1, len(POINTS))
+        client.object("blob").update(VERTICES + 2)
+        client.object("blob").delete()
+        [info] = client.workers()
+        assert (info.object_count, info.frames_applied, info.queries_answered) == (0, 2, 1)
 
 
 def test_a_worker_that_leaves_makes_its_objects_unavailable_and_reregister_restores_them(endpoint: str) -> None:
