@@ -168,11 +168,13 @@ class ServedObject:
         ]
 
     def close(self, reason: BadfError) -> None:
-        """Stop taking requests, answer the waiting ones with `reason`, and end the object's thread."""
-        self._undeclare()
+        """Refuse the waiting requests and any that come with `reason`, let the one running finish and
+        answer, end the object's thread, and only then undeclare the object's keys: a reply sent after its
+        queryable was undeclared could be lost (the answer of a query in progress at SIGTERM, 4 of 9 runs)."""
         self._begin_closing(reason)
         if threading.current_thread() is not self._thread:
             self._thread.join()
+        self._undeclare()
 
     def _undeclare(self) -> None:
         entities, self._entities = self._entities, []

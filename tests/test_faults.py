@@ -151,10 +151,11 @@ def test_a_killed_worker_gives_clear_errors_then_clients_register_again() -> Non
 
 
 def test_a_stopping_worker_answers_the_request_in_progress_and_refuses_the_waiting() -> None:
-    """SIGTERM while one exact query of a million points runs and a second waits behind it: the running one
-    is answered and the waiting one refused (WorkerUnavailableError), as documented. The worker withdrew its
+    """SIGTERM while one exact query of a million points runs and three wait behind it: the running one is
+    answered and the waiting ones refused (WorkerUnavailableError), as documented. The worker withdrew its
     liveliness token first, and the client, which cancels what it sent to a worker whose token goes, lost
-    the answer of the running one."""
+    the answer of the running one. Later the object undeclared its keys before the running query replied,
+    and that reply was lost in 4 of 9 runs of an outside check (round 4) with three waiting."""
     endpoint = free_endpoint()
     settings = WorkerSettings(worker_id="stopping", listen=(endpoint,), device="cpu", stats_interval_s=60.0)
     points = np.random.default_rng(5).uniform(-2.0, 2.0, (1_000_000, 3)).astype(np.float32)
@@ -170,20 +171,20 @@ def test_a_stopping_worker_answers_the_request_in_progress_and_refuses_the_waiti
             except WorkerUnavailableError as error:
                 outcomes.append(error)
 
-        threads = [threading.Thread(target=ask) for _ in range(2)]
+        threads = [threading.Thread(target=ask) for _ in range(4)]
         for thread in threads:
             thread.start()
-        wait_until(lambda: client.workers(timeout=30)[0].requests_waiting == 1, timeout=120,
-                   what="one query to run and the other to wait")  # fmt: skip
+        wait_until(lambda: client.workers(timeout=30)[0].requests_waiting == 3, timeout=120,
+                   what="one query to run and the others to wait")  # fmt: skip
         end_process(process)
         for thread in threads:
             thread.join(120)
         assert process.exitcode == 0
     answered = [outcome for outcome in outcomes if outcome == (len(points),)]
     refused = [outcome for outcome in outcomes if isinstance(outcome, WorkerUnavailableError)]
-    assert len(answered) == 1 and len(refused) == 1, outcomes
+    assert len(answered) == 1 and len(refused) == 3, outcomes
     # the worker's "shutting down", or, read after the token went, the client's "gone": unavailable either way
-    assert "shutting down" in str(refused[0]) or "is gone" in str(refused[0]), refused
+    assert all("shutting down" in str(error) or "is gone" in str(error) for error in refused), refused
 
 
 def test_a_viewer_that_stops_reading_stalls_nobody(worker, endpoint: str, client: Client) -> None:
