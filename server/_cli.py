@@ -5,6 +5,7 @@ a router and one worker process per GPU."""
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from badf.protocol import DEFAULT_ENDPOINT, BadfError
@@ -61,7 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def settings_from(args: argparse.Namespace) -> WorkerSettings:
     return WorkerSettings(
-        worker_id=args.worker_id or default_worker_id(),
+        worker_id=default_worker_id() if args.worker_id is None else args.worker_id,
         namespace=args.namespace,
         device=args.device,
         mode=args.mode,
@@ -73,9 +74,11 @@ def settings_from(args: argparse.Namespace) -> WorkerSettings:
 
 
 def router_settings_from(args: argparse.Namespace) -> RouterSettings:
-    for given, flag in ((args.worker_id, "--worker-id"), (args.mode != "router", "--mode")):
+    for given, flag in ((args.worker_id is not None, "--worker-id"), (args.mode != "router", "--mode")):
         if given:
             raise ValueError(f"{flag} does not apply to --router-only")
+    if not (math.isfinite(args.stats_interval) and args.stats_interval > 0):  # the router's own stats lines
+        raise ValueError(f"--stats-interval must be a positive finite number of seconds, got {args.stats_interval}")
     return RouterSettings(
         namespace=args.namespace,
         listen=tuple(args.listen) if args.listen else None,

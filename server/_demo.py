@@ -21,7 +21,7 @@ from contextlib import ExitStack
 
 import numpy as np
 
-from badf.protocol import DEFAULT_ENDPOINT, BadfError, InvalidOptionError, zenoh_config
+from badf.protocol import DEFAULT_ENDPOINT, DEFAULT_LIMITS, MAX_NAME_LENGTH, BadfError, InvalidOptionError, zenoh_config
 from badf.server._mesh_files import MeshFileError, read_frames, read_mesh
 
 # Depth when none is given: what keeps frames interactive on each kind of device.
@@ -59,8 +59,8 @@ def run(args: argparse.Namespace) -> int:
     if args.mesh and args.sequence:
         print("badf demo: give --mesh or --sequence, not both", file=sys.stderr)
         return 2
-    if args.points < 1:
-        print("badf demo: --points must be at least 1", file=sys.stderr)
+    if not 1 <= args.points <= DEFAULT_LIMITS.max_points:
+        print(f"badf demo: --points must be in 1..{DEFAULT_LIMITS.max_points}, got {args.points}", file=sys.stderr)
         return 2
     if not 0 <= args.port <= 65535:
         print(f"badf demo: --port must be in 0..65535, got {args.port}", file=sys.stderr)
@@ -81,6 +81,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"badf demo: {error}", file=sys.stderr)
         return 2
     device = args.device or _default_device()
+    problem = _device_problem(device)
+    if problem is None and not args.no_viewer:
+        problem = _host_problem(args.host)
+    if problem is not None:
+        print(f"badf demo: {problem}", file=sys.stderr)
+        return 2
     kind = "cuda" if device.startswith("cuda") else "cpu"
     chosen = args.depth is not None
     depth = args.depth if chosen else (CLOTH_SPHERE_DEPTH if args.scene == "cloth" else DEFAULT_DEPTH)[kind]
@@ -127,6 +133,34 @@ def _default_device() -> str:
         return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
     except ImportError:
         return "cpu"
+
+
+def _device_problem(device: str) -> str | None:
+    """Why the worker could not run on `device` (before anything starts), or None."""
+    try:
+        import warp as wp
+    except ImportError:
+        return None  # the worker says so itself
+    wp.config.log_level = wp.LOG_ERROR
+    wp.init()
+    try:
+        wp.get_device(device)
+    except (RuntimeError, ValueError, KeyError) as error:
+        return f"--device {device!r} is not a device here ({error}); try cpu or cuda:0"
+    return None
+
+
+def _host_problem(host: str) -> str | None:
+    """Why the viewer could not serve its page on `host`, or None (also when the viewer is not installed)."""
+    try:
+        from badf.web_viewer._viewer import check_host
+    except ImportError:
+        return None
+    try:
+        check_host(host)
+    except ValueError as error:
+        return f"--host: {error}"
+    return None
 
 
 def _start_worker(stack: ExitStack, endpoint: str, device: str) -> None:
@@ -192,7 +226,7 @@ def _morph_source(args):
     """(frame -> vertices, faces, object name)."""
     if args.sequence:
         frames, faces = read_frames(args.sequence)
-        return (lambda k: frames[k % len(frames)]), faces, pathlib.Path(args.sequence).stem
+        return (lambda k: frames[k % len(frames)]), faces, _key_safe(pathlib.Path(args.sequence).stem)
     if args.mesh:
         vertices, faces = read_mesh(args.mesh)
         name = pathlib.Path(args.mesh).stem
@@ -221,8 +255,10 @@ def _wobble(vertices: np.ndarray, frame: int) -> np.ndarray:
 
 
 def _key_safe(name: str) -> str:
-    safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name)
-    return safe or "mesh"
+    """An object name made from a file name: ASCII letters, digits, '-' and '_' (others become '_'), cut to
+    the names' 100 characters."""
+    safe = "".join(ch if (ch.isascii() and ch.isalnum()) or ch in "-_" else "_" for ch in name)
+    return safe[:MAX_NAME_LENGTH] or "mesh"
 
 
 # -- cloth -----------------------------------------------------------------------------------------------

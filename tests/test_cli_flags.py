@@ -24,6 +24,12 @@ CASES = [
     (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--sequence", "<not-npz>"], "not an .npz archive"),
     (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--port", "-3"], "--port must be in 0..65535, got -3"),
     (["demo", "--no-viewer", "--frames", "1", "--listen", "garbage"], "listen endpoint 'garbage' is not a Zenoh endpoint"),
+    (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--points", "5000000"],
+     "--points must be in 1..4194304, got 5000000"),
+    (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--device", "gpu9"], "--device 'gpu9' is not a device"),
+    (["demo", "--frames", "1", "--listen", "<free>", "--host", "999.9.9.9"], "--host: cannot serve the page on host"),
+    (["serve", "--listen", "<free>", "--worker-id", ""], "worker id must be 1 to 100 characters"),
+    (["serve", "--router-only", "--listen", "<free>", "--stats-interval", "-5"], "--stats-interval must be a positive"),
     (["serve", "--listen", "<free>", "--stats-interval", "nan"], "stats_interval_s must be a positive finite number"),
     (["serve", "--listen", "<free>", "--stats-interval", "inf"], "stats_interval_s must be a positive finite number"),
     (["bench", "engine", "--quick", "--mesh", "<no-faces>"], "no faces array (it holds vertices)"),
@@ -64,3 +70,13 @@ def test_view_heeds_ctrl_c_while_it_waits_for_a_router() -> None:
         if view.poll() is None:
             view.kill()
             view.wait(30)
+
+
+@pytest.mark.parametrize(("file_name", "name"), [("my frames+v2", "my_frames_v2"), ("café", "caf_"), ("x" * 120, "x" * 100)])
+def test_demo_names_its_object_after_any_file(file_name: str, name: str) -> None:
+    """`badf demo --mesh/--sequence` names the object after the file: a sequence's name was not cleaned up,
+    and non-ASCII letters or a long name were kept, so the worker refused the registration after starting."""
+    from badf.protocol import check_name
+    from badf.server._demo import _key_safe
+
+    assert check_name(_key_safe(file_name)) == name

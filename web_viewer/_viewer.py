@@ -174,7 +174,7 @@ class _Shown:
     scale: float | None = None
 
 
-def _check_host(host: str) -> None:
+def check_host(host: str) -> None:
     """ValueError unless a socket can listen on `host` (an address of this machine, or a name for one). viser
     tries a thousand ports on an address it cannot bind, then waits forever for a server that never started
     (and Ctrl-C cannot end that wait)."""
@@ -193,7 +193,7 @@ class Viewer:
     def __init__(self, settings: ViewerSettings) -> None:
         viser = _import_viser()
         self.settings = settings
-        _check_host(settings.host)  # viser waits forever on a host it cannot bind
+        check_host(settings.host)  # viser waits forever on a host it cannot bind
         self._client = Client(
             settings.connect, namespace=settings.namespace, timeout=settings.timeout_s, config_file=settings.config_file
         )
