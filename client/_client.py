@@ -21,9 +21,11 @@ import zenoh
 
 from badf.protocol import (
     DEFAULT_ENDPOINT,
-    AccessDeniedError,
     DEFAULT_LIMITS,
+    QUERY_OUTPUTS,
+    AccessDeniedError,
     BadfError,
+    InvalidOptionError,
     Deleted,
     DeleteRequest,
     ErrorReply,
@@ -59,6 +61,7 @@ from badf.protocol import (
     encode,
     error_for_code,
     zenoh_config,
+    zenoh_message,
 )
 
 M = TypeVar("M", bound=Message)
@@ -83,7 +86,13 @@ class Client:
         config_file: str | None = None,
         limits: Limits = DEFAULT_LIMITS,
     ) -> None:
-        endpoints = [connect] if isinstance(connect, str) else list(connect)
+        endpoints = [connect] if isinstance(connect, str) else connect
+        if not isinstance(endpoints, (list, tuple)) or not endpoints:
+            raise InvalidOptionError(f"connect must be an endpoint like {DEFAULT_ENDPOINT} or a non-empty list of "
+                                     f"them, got {connect!r}")
+        endpoints = list(endpoints)
+        if not isinstance(limits, Limits):
+            raise InvalidOptionError(f"limits must be a badf.protocol.Limits, got {limits!r}")
         self.keys = KeySpace(namespace)
         self.timeout = _seconds(timeout)
         self.limits = limits
@@ -93,7 +102,8 @@ class Client:
         try:
             self._session = zenoh.open(config)
         except zenoh.ZError as error:
-            raise WorkerUnavailableError(f"cannot reach a Zenoh router at {', '.join(endpoints)}: {error}") from None
+            raise WorkerUnavailableError(
+                f"cannot reach a Zenoh router at {', '.join(endpoints)}: {zenoh_message(error)}") from None
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._lock = threading.Lock()
         self._live: set[str] = set()  # workers whose liveliness token this client sees
@@ -127,7 +137,7 @@ class Client:
             self._publishers.clear()
             self._session.close()
         except zenoh.ZError as error:
-            log.warning("closing the client's Zenoh session: %s", str(error).split(" at /", 1)[0])
+            log.warning("closing the client's Zenoh session: %s", zenoh_message(error))
 
     # --- objects -------------------------------------------------------------------------------------
 
@@ -278,7 +288,7 @@ class Client:
                 cancellation_token=cancellation,
             )
         except zenoh.ZError as error:
-            raise WorkerUnavailableError(f"cannot send a request on {key}: {error}") from None
+            raise WorkerUnavailableError(f"cannot send a request on {key}: {zenoh_message(error)}") from None
 
     def _ask(
         self,
@@ -454,7 +464,7 @@ class RemoteObject:
         try:
             self._client._publisher(key).put(encode(frame))
         except zenoh.ZError as error:
-            raise WorkerUnavailableError(f"cannot stream to {self.name!r}: {error}") from None
+            raise WorkerUnavailableError(f"cannot stream to {self.name!r}: {zenoh_message(error)}") from None
         return frame.frame
 
     def query(
@@ -471,7 +481,10 @@ class RemoteObject:
         closest_point (P, 3); normal (P, 3); face (P,) int32; and `frame`, the frame that answered.
         Its arrays are read-only views of the received message (copy them to change them).
         """
-        outputs = (outputs,) if isinstance(outputs, str) else tuple(outputs)  # "distance" as the engine takes it
+        if isinstance(outputs, str):
+            outputs = (outputs,)  # "distance" as the engine takes it
+        elif not isinstance(outputs, (list, tuple)):
+            raise InvalidOptionError(f"outputs must be a sequence of {', '.join(QUERY_OUTPUTS)}, got {outputs!r}")
         request = QueryRequest(self.name, points, mode=mode, outputs=outputs)  # type: ignore[arg-type]
         reply = self._ask(self._client.keys.object_query(self.name), request, QueryReply, timeout)
         self._saw(reply.frame)

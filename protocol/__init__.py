@@ -70,7 +70,7 @@ from badf.protocol._messages import (
     decode,
     encode,
 )
-from badf.protocol._session import DEFAULT_ENDPOINT, ZenohMode, zenoh_config
+from badf.protocol._session import DEFAULT_ENDPOINT, ZenohMode, zenoh_config, zenoh_message
 from badf.protocol._wire import PROTOCOL_VERSION
 
 __all__ = [
@@ -144,4 +144,5 @@ __all__ = [
     "encode",
     "error_for_code",
     "zenoh_config",
+    "zenoh_message",
 ]

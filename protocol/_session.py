@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from typing import Literal, Sequence
 
 import zenoh
@@ -43,7 +44,7 @@ def zenoh_config(
         try:
             config = zenoh.Config.from_file(config_file)
         except zenoh.ZError as error:
-            raise InvalidOptionError(f"cannot use the Zenoh config file {config_file!r}: {_first_line(error)}") from None
+            raise InvalidOptionError(f"cannot use the Zenoh config file {config_file!r}: {zenoh_message(error)}") from None
     config.insert_json5("mode", json.dumps(mode))
     if listen is not None:
         config.insert_json5("listen/endpoints", _endpoints_json(listen, "listen"))
@@ -72,6 +73,9 @@ def _endpoints_json(endpoints: Sequence[str], role: str) -> str:
     return json.dumps(list(endpoints))
 
 
-def _first_line(error: Exception) -> str:
-    """Zenoh's message without the Rust source location it appends."""
-    return str(error).split(" at /", 1)[0]
+def zenoh_message(error: Exception) -> str:
+    """Zenoh's message without the Rust source locations it appends (" at /root/.cargo/.../x.rs:388.")."""
+    return _SOURCE_LOCATION.sub("", str(error)).strip()
+
+
+_SOURCE_LOCATION = re.compile(r"\s+at /\S+\.rs:\d+\.?")

@@ -21,7 +21,7 @@ from typing import Any, Callable, Iterator, Protocol, Sequence
 
 import zenoh
 
-from badf.protocol import InvalidOptionError, WorkerUnavailableError
+from badf.protocol import InvalidOptionError, WorkerUnavailableError, zenoh_message
 from badf.server._router import RouterSettings, listen_endpoints, log_worker_changes
 from badf.server._worker import WorkerSettings, engine_field_builder, serve, warm_up_engine
 
@@ -282,7 +282,8 @@ def _open(config: zenoh.Config) -> zenoh.Session | None:
     try:
         return zenoh.open(config)
     except zenoh.ZError as error:
-        log.error("cannot open the Zenoh session (is the port taken, or the config file wrong?): %s", error)
+        log.error("cannot open the Zenoh session (is the port taken, or the config file wrong?): %s",
+                  zenoh_message(error))
         return None
 
 

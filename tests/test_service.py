@@ -323,6 +323,8 @@ def test_bad_input_is_answered_and_changes_nothing(client: Client, shared_endpoi
             )
     with pytest.raises(InvalidOptionError):
         client.register("cow4", vertices, faces, sign="inside-out")
+    with pytest.raises(InvalidOptionError, match="outputs must be a sequence"):
+        remote.query(points, outputs=None)  # was a raw TypeError
     with pytest.raises(VertexCountMismatchError):
         remote.update(vertices[:-1])
     info = remote.info()
@@ -426,3 +428,23 @@ def test_a_taken_port_is_a_clear_error() -> None:
         with pytest.raises(WorkerUnavailableError, match="exited with status 1"):
             with worker_process(WorkerSettings(worker_id="late", listen=(taken,), device="cpu")):
                 pass
+
+
+@pytest.mark.parametrize(("args", "kwargs", "message"), [
+    ((123,), {}, "connect must be an endpoint like"),
+    ((None,), {}, "connect must be an endpoint like"),
+    (([],), {}, "connect must be an endpoint like"),
+    (("tcp/127.0.0.1:7447",), {"limits": "x"}, "limits must be a badf.protocol.Limits"),
+])
+def test_a_client_refuses_arguments_it_cannot_use(args, kwargs, message) -> None:
+    """Client(123) and Client(None) raised "'int' object is not iterable", Client([]) tried to connect to
+    nothing, and limits="x" was taken (outside check, round 4)."""
+    with pytest.raises(InvalidOptionError, match=message):
+        Client(*args, **kwargs)
+
+
+def test_zenoh_errors_are_told_without_rust_source_locations() -> None:
+    unreachable = free_endpoint()  # nobody listens there
+    with pytest.raises(WorkerUnavailableError) as raised:
+        Client(unreachable, timeout=0.5)
+    assert "cannot reach a Zenoh router" in str(raised.value) and ".rs:" not in str(raised.value)
