@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
+import pathlib
 import sys
 
 from badf.server._mesh_files import MeshFileError
@@ -29,8 +31,77 @@ def run(args: argparse.Namespace) -> int:
     module = importlib.import_module(_BENCHMARKS[args.name][0])
     sub = argparse.ArgumentParser(prog=f"badf bench {args.name}", description=_BENCHMARKS[args.name][1])
     module.add_arguments(sub)
+    flags = sub.parse_args(args.rest)
     try:
-        return int(module.run(sub.parse_args(args.rest)) or 0)
-    except MeshFileError as error:
+        check_flags(flags)
+        return int(module.run(flags) or 0)
+    except (MeshFileError, BenchFlagError) as error:
         print(f"badf bench {args.name}: {error}", file=sys.stderr)
         return 2
+
+
+class BenchFlagError(ValueError):
+    """A benchmark flag whose value would fail the run, or make it measure nothing."""
+
+
+# What each flag of the benchmarks may be, by its name (argparse's dest); a flag left at None is not checked.
+_AT_LEAST_ONE = {"repeat", "repeats", "round_trips", "points", "near_points", "query_batch", "large_batch", "workers",
+                 "objects", "grid", "max_rounds"}
+_DEPTHS = {"depth", "dense_max_depth", "switch_depth", "far_sweep", "split_sweep"}
+_POSITIVE_SECONDS = {"seconds", "follow_s", "stream_fps", "budget"}
+_NOT_NEGATIVE = {"warm_up", "warmup"}
+_COMMA_LISTS = {"depths": _DEPTHS, "batches": _AT_LEAST_ONE, "clients": _AT_LEAST_ONE}
+
+
+def check_flags(flags: argparse.Namespace) -> None:
+    """BenchFlagError naming the first flag whose value no run could use, before anything starts (a
+    benchmark that fails after minutes, or that measures nothing and reports success, helps nobody)."""
+    from badf.server.adf._tolerances import MAX_DEPTH
+
+    for dest, value in vars(flags).items():
+        if value is None:
+            continue
+        flag = "--" + dest.replace("_", "-")
+        if dest in _COMMA_LISTS:
+            if isinstance(value, str):
+                try:
+                    value = [int(part) for part in value.split(",")]
+                except ValueError:
+                    raise BenchFlagError(f"{flag} takes integers separated by commas, got {value!r}") from None
+            rule = _COMMA_LISTS[dest]
+        else:
+            rule = {dest} & (_AT_LEAST_ONE | _DEPTHS | _POSITIVE_SECONDS | _NOT_NEGATIVE)
+        values = value if isinstance(value, list) else [value]
+        if rule & _DEPTHS and not all(1 <= v <= MAX_DEPTH for v in values):
+            raise BenchFlagError(f"{flag} must be in 1..{MAX_DEPTH}, got {value}")
+        if rule & _AT_LEAST_ONE and not all(v >= 1 for v in values):
+            raise BenchFlagError(f"{flag} must be at least 1, got {value}")
+        if rule & _POSITIVE_SECONDS and not (math.isfinite(value) and value > 0):
+            raise BenchFlagError(f"{flag} must be a positive finite number, got {value}")
+        if rule & _NOT_NEGATIVE and not (math.isfinite(value) and value >= 0):
+            raise BenchFlagError(f"{flag} must be a finite number >= 0, got {value}")
+    if getattr(flags, "resolution", None) is not None and not 1 <= flags.resolution <= 2048:
+        raise BenchFlagError(f"--resolution must be in 1..2048, got {flags.resolution}")
+    for dest in ("out", "screenshot"):  # written at the end: a folder that is not there would lose the run
+        path = getattr(flags, dest, None)
+        if path is not None and not pathlib.Path(path).resolve().parent.is_dir():
+            raise BenchFlagError(f"--{dest}: the folder of {path!r} does not exist")
+    render = getattr(flags, "render", None)
+    if render is not None and not pathlib.Path(render).is_file():
+        raise BenchFlagError(f"--render: no such file {render!r}")
+    device = getattr(flags, "device", None)
+    if device is not None:
+        _check_device(device)
+
+
+def _check_device(device: str) -> None:
+    try:
+        import warp as wp
+    except ImportError:
+        return  # the benchmark says so itself
+    wp.config.log_level = wp.LOG_ERROR  # no banner before the one line
+    wp.init()
+    try:
+        wp.get_device(device)
+    except (RuntimeError, ValueError, KeyError) as error:
+        raise BenchFlagError(f"--device {device!r} is not a device here ({error}); try cpu or cuda:0") from None

@@ -29,7 +29,7 @@ import numpy as np
 from badf.bench import _oracle as oracle
 from badf.bench import _tolerances as tol
 from badf.bench._cases import domain_of, near_surface, shared_mesh, stability_cases, surface_samples
-from badf.bench._common import bench_device_name, deform, print_table, start_warp, timestamp
+from badf.bench._common import bench_device_name, deform, find_mesh, mesh_folders, print_table, start_warp, timestamp
 
 SHARED_MESHES = ("stanford-bunny", "armadillo-86k", "spot", "fandisk", "rocker-arm", "homer", "vlasic_samba",
                  "sumner_horse_gallop")
@@ -82,6 +82,14 @@ class PointSets:
 
 
 # -- meshes ---------------------------------------------------------------------------------------------
+def _findable(name: str) -> bool:
+    """Whether `name` is a file that exists or a mesh in the data folders."""
+    try:
+        return find_mesh(name).exists()
+    except FileNotFoundError:
+        return False
+
+
 def load_mesh(name: str) -> Mesh:
     from badf.server.adf._sign import analyse_topology
 
@@ -353,7 +361,11 @@ def device_slug(device: str) -> str:
 
 def run(args: argparse.Namespace) -> int:
     if args.render:
-        report = json.loads(pathlib.Path(args.render).read_text())
+        try:
+            report = json.loads(pathlib.Path(args.render).read_text())
+        except (UnicodeDecodeError, json.JSONDecodeError) as error:
+            print(f"badf bench accuracy: --render {args.render}: not a results JSON file ({error})", file=sys.stderr)
+            return 2
         write_outputs(report, pathlib.Path(args.out_dir), pathlib.Path(args.render).stem.removeprefix("accuracy-"))
         return 0
     from badf.server.adf import DistanceField
@@ -361,6 +373,18 @@ def run(args: argparse.Namespace) -> int:
     args.device = start_warp(args.device)
     depths = sorted(int(d) for d in args.depths.split(","))
     names = [n for n in args.meshes.split(",") if n]
+    if not names:
+        print("badf bench accuracy: --meshes names no mesh", file=sys.stderr)
+        return 2
+    available = [name for name in names if name in SUBDIVIDED or _findable(name)]
+    for name in set(names) - set(available):
+        if (pathlib.Path(name).suffix or len(pathlib.Path(name).parts) > 1):
+            print(f"badf bench accuracy: {name}: no such file", file=sys.stderr)  # a path, not a name to skip
+            return 2
+    if not available:  # before the stability table, which takes minutes
+        print(f"badf bench accuracy: none of --meshes {args.meshes} is a mesh file or a mesh in "
+              f"{', '.join(map(str, mesh_folders()))}", file=sys.stderr)
+        return 2
     started = time.perf_counter()
     report = {
         "benchmark": "accuracy", "date": timestamp(), "device": bench_device_name(args.device),

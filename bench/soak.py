@@ -457,6 +457,10 @@ def _report(
         failures += [f"client {tally['client']}: {text}" for text in tally["error_samples"]]
         round_trips += tally["round_trip_ms"]
         round_trips_at += tally["round_trip_at_s"]
+    if len(tallies) < settings.clients:  # a client process that died sends none
+        failures.append(f"{settings.clients - len(tallies)} of {settings.clients} clients reported nothing (they died)")
+    if totals["rounds"] == 0:
+        failures.append("no client finished a round: the soak checked nothing")
     samples = np.asarray(round_trips) if round_trips else np.zeros(1)
     after_warm_up = samples[np.asarray(round_trips_at) >= settings.warm_up] if round_trips else samples
     after_warm_up = after_warm_up if len(after_warm_up) else np.zeros(1)

@@ -34,6 +34,18 @@ CASES = [
     (["serve", "--listen", "<free>", "--stats-interval", "inf"], "stats_interval_s must be a positive finite number"),
     (["bench", "engine", "--quick", "--mesh", "<no-faces>"], "no faces array (it holds vertices)"),
     (["bench", "service", "--small", "--mesh", "/nonexistent/m.npz"], "badf bench service: /nonexistent/m.npz"),
+    # bench flags that no run could use: refused before anything starts (they were tracebacks after the run,
+    # or runs that measured nothing and exited 0)
+    (["bench", "engine", "--quick", "--mesh", "<no-faces>", "--depth", "0"], "--depth must be in 1..10, got 0"),
+    (["bench", "engine", "--quick", "--mesh", "<no-faces>", "--out", "/nonexistent-dir/x.json"],
+     "--out: the folder of '/nonexistent-dir/x.json' does not exist"),
+    (["bench", "service", "--small", "--mesh", "<no-faces>", "--batches", "abc"], "--batches takes integers"),
+    (["bench", "viewer", "--small", "--mesh", "<no-faces>", "--stream-fps", "0"], "--stream-fps must be a positive"),
+    (["bench", "soak", "--clients", "0"], "--clients must be at least 1, got 0"),
+    (["bench", "scaleout", "--small", "--mesh", "<no-faces>", "--seconds", "nan"], "--seconds must be a positive"),
+    (["bench", "soak", "--device", "gpu3"], "--device 'gpu3' is not a device here"),
+    (["bench", "accuracy", "--meshes", "nosuchmesh"], "none of --meshes nosuchmesh is a mesh file"),
+    (["bench", "accuracy", "--render", "<not-npz>"], "not a results JSON file"),
 ]
 
 
