@@ -416,7 +416,8 @@ class DistanceField:
             if beyond is not None:
                 rows, extra = beyond
                 moved = distance[rows] + extra
-                distance[rows] = moved if self._band is None else np.minimum(moved, self._band)
+                # at the band the searches clamped at (widened with the domain: band_in_force)
+                distance[rows] = moved if band is None else np.minimum(moved, float(np.float32(band)) / domain.scale)
         if "closest_point" in arrays:
             closest = arrays["closest_point"]
             _to_world_units(closest, domain.scale)
