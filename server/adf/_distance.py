@@ -35,7 +35,7 @@ from badf.server.adf._geometry import (
 )
 from badf.server.adf._octree import OctreeView, leaf_corner, locate
 from badf.server.adf._sign import SIGN_PSEUDONORMAL, SIGN_WINDING, SignView, feature_normal, inside_by_pseudonormal, inside_by_winding
-from badf.server.adf._tolerances import SURFACE_SNAP
+from badf.server.adf._tolerances import DEGENERATE_AREA, SURFACE_SNAP
 
 # No fused multiply-adds in this module's kernels (nor in the point queries'): with them, the compiler may
 # round the same triangle arithmetic differently where it is inlined at two places, so a seed's distance
@@ -46,6 +46,7 @@ EXACT_ROUNDING = {"fuse_fp": False}
 wp.set_module_options(EXACT_ROUNDING)
 
 _SURFACE_SNAP = wp.constant(SURFACE_SNAP)
+_DEGENERATE = wp.constant(DEGENERATE_AREA)
 # How far (in domain sides) off the surface an on-surface exact normal looks for the winding numbers' inside
 _SIDE_STEP = wp.constant(16.0 * SURFACE_SNAP)
 
@@ -439,23 +440,27 @@ def query_kernel(method: int) -> wp.Kernel:
 
 @wp.func
 def _face_normal(bvh: BvhView, leaf: int) -> wp.vec3:
+    """The unit normal of a leaf's face, or zero where the face is degenerate (DEGENERATE_AREA)."""
     a, b, c = leaf_triangle(bvh, leaf)
     n = wp.cross(b - a, c - a)
     length = wp.length(n)
-    if length > 0.0:
+    longest_sq = wp.max(wp.max(wp.length_sq(b - a), wp.length_sq(c - b)), wp.length_sq(a - c))
+    if length > _DEGENERATE * longest_sq and length > 0.0:
         return n / length
     return wp.vec3(0.0)
 
 
 @wp.func
 def _surface_normal(tree: OctreeView, corner_leaf: wp.array(dtype=wp.int32), node: int, octant: int, bvh: BvhView,
-                    p: wp.vec3, leaf: int) -> wp.vec3:
-    """The unit normal of `leaf`'s face at a point on it or, where the face has none (it is degenerate: a
-    sliver along another face's edge, say), of the face nearest p among those recorded at the corners of
-    p's octree leaf (node, octant), which has one. Zero only if none of them has one."""
+                    p: wp.vec3, leaf: int):
+    """(unit normal, the leaf it is of) at a point on `leaf`'s face: that face's normal or, where the face has
+    none (it is degenerate: a sliver along another face's edge, say), the normal of the face nearest p among
+    those recorded at the corners of p's octree leaf (node, octant). Where none has one (a stray segment):
+    the direction from the face to p, or any direction across the face's longest edge."""
     n = _face_normal(bvh, leaf)
     if wp.length_sq(n) > 0.0:
-        return n
+        return n, leaf
+    used = leaf
     best_sq = float(3.0e38)
     for corner in range(8):
         other = corner_leaf[leaf_corner(tree, node, octant, corner)]
@@ -465,7 +470,37 @@ def _surface_normal(tree: OctreeView, corner_leaf: wp.array(dtype=wp.int32), nod
             if d_sq < best_sq:
                 best_sq = d_sq
                 n = m
-    return n
+                used = other
+    if wp.length_sq(n) > 0.0:
+        return n, used
+    a, b, c = leaf_triangle(bvh, leaf)
+    foot, _feature = closest_point_on_triangle(p, a, b, c)
+    if wp.length_sq(p - foot) > 0.0:
+        return wp.normalize(p - foot), leaf
+    edge = b - a
+    if wp.length_sq(c - a) > wp.length_sq(edge):
+        edge = c - a
+    across = wp.cross(edge, wp.vec3(1.0, 0.0, 0.0))
+    if wp.length_sq(across) <= 1.0e-6 * wp.length_sq(edge):
+        across = wp.cross(edge, wp.vec3(0.0, 1.0, 0.0))
+    if wp.length_sq(across) > 0.0:
+        return wp.normalize(across), leaf
+    return wp.vec3(0.0, 0.0, 1.0), leaf  # a face that is a point
+
+
+@wp.func
+def _winds_inward(bvh: BvhView, leaf: int, inv_side: float) -> bool:
+    """Whether `leaf`'s face winds inwards by the winding numbers: |w| is larger a step along its normal
+    from its centroid than a step against it. Looked at from the centroid, not from a point on the face's
+    edge, where a step along its normal can land in the plane of the next face and |w| there is rounding."""
+    a, b, c = leaf_triangle(bvh, leaf)
+    n = wp.cross(b - a, c - a)
+    length = wp.length(n)
+    if length == 0.0:
+        return False
+    centre = (a + b + c) / 3.0
+    step = n * (_SIDE_STEP / (inv_side * length))
+    return wp.abs(winding_number(bvh, centre + step)) > wp.abs(winding_number(bvh, centre - step))
 
 
 @wp.func
@@ -863,6 +898,8 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                     if (outputs & (_OUT_NORMAL | _OUT_CLOSEST)) != 0 and not beyond and near:
                         # the face nearest p of those recorded at the leaf's corners (a corner's own may be one
                         # of several tied there, whichever its search met first)
+                        # p's nearest face, searched from the nearest of those recorded at the leaf's corners
+                        # (p's own face need not be one of them: directions from those lay nearly in the sheet)
                         near_leaf = corner_leaf[nearest_corner]
                         near_sq = leaf_distance_sq(bvh, near_leaf, p)
                         for corner in range(8):
@@ -871,6 +908,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                             if other_sq < near_sq:
                                 near_sq = other_sq
                                 near_leaf = other
+                        near_leaf, near_sq, _done = _nearest_with_band(bvh, p, near_leaf, 0.0, UNLIMITED_VISITS)
                         a, b, c = leaf_triangle(bvh, near_leaf)
                         foot, _feature = closest_point_on_triangle(p, a, b, c)
                         away = p - foot
@@ -878,7 +916,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                         if away_length * inv_side > _SURFACE_SNAP:
                             unit = away / away_length
                         else:
-                            unit = _surface_normal(tree, corner_leaf, node, octant, bvh, p, near_leaf)
+                            unit, _used = _surface_normal(tree, corner_leaf, node, octant, bvh, p, near_leaf)
                 clear = scale > 1 or farthest > diagonal or nearest > 0.5 * diagonal
                 if not (has_inside and has_outside and clear):
                     if outputs & _OUT_DISTANCE:
@@ -946,18 +984,17 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 if inside:
                     n = -n
             else:
+                oriented = leaf
                 if wp.static(pseudonormal):
                     n = feature_normal(sign, face, feature)
                 if wp.length_sq(n) == 0.0:
-                    n = _surface_normal(tree, corner_leaf, node, octant, bvh, p, leaf)
+                    n, oriented = _surface_normal(tree, corner_leaf, node, octant, bvh, p, leaf)
                 by_winding = wp.static(winding)
                 if wp.static(pseudonormal):
                     by_winding = sign.winding_frame[0] != 0  # a frame inside out, flat, or overlapping itself
                 if by_winding:
-                    # outward for the winding numbers' inside, whichever way the face winds: towards the
-                    # side where |w| is smaller
-                    step = n * (_SIDE_STEP / inv_side)
-                    if wp.abs(winding_number(bvh, p + step)) > wp.abs(winding_number(bvh, p - step)):
+                    # outward for the winding numbers' inside, whichever way the face winds
+                    if _winds_inward(bvh, oriented, inv_side):
                         n = -n
             out_normal[i] = n
         if outputs & _OUT_CLOSEST:

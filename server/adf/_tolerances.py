@@ -20,9 +20,12 @@ CELL_OVERLAP_SLACK = 1.0e-3
 # whose pseudonormal then gives the sign.
 FEATURE_SNAP = 1.0e-5
 
-# A triangle whose doubled area is below this fraction of its longest edge squared is treated as its
-# three edges (a segment or a point); no face normal is formed from it.
-DEGENERATE_AREA = 1.0e-12
+# A triangle whose doubled area is below this fraction of its longest edge squared has no face normal (nor a
+# share in its vertices' and edges' pseudonormals). float32's cross product of its edges carries rounding of
+# about 1e-7 of that square, so below 1e-5 the normal's direction is off by more than about a degree; at the
+# 1e-12 used before, three collinear float32 points (a zero-area face closing a split edge) gave a normal of
+# pure rounding, 70 degrees off on the surface (outside check, 2026-11-22).
+DEGENERATE_AREA = 1.0e-5
 
 # The BVH's leaf boxes are grown by this much on every side (local units, where the domain's side is 0.7 to
 # 1.4; about 16 float32 ulps of the coordinates). A box's rounded distance from a point could otherwise come
