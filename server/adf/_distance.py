@@ -489,6 +489,22 @@ def _surface_normal(tree: OctreeView, corner_leaf: wp.array(dtype=wp.int32), nod
 
 
 @wp.func
+def _nearest_corner_face(tree: OctreeView, corner_leaf: wp.array(dtype=wp.int32), node: int, octant: int,
+                         bvh: BvhView, p: wp.vec3) -> int:
+    """The leaf nearest p of those recorded at the corners of p's octree leaf (node, octant); the first of
+    equals in corner order."""
+    best = corner_leaf[leaf_corner(tree, node, octant, 0)]
+    best_sq = leaf_distance_sq(bvh, best, p)
+    for corner in range(1, 8):
+        leaf = corner_leaf[leaf_corner(tree, node, octant, corner)]
+        d_sq = leaf_distance_sq(bvh, leaf, p)
+        if d_sq < best_sq:
+            best_sq = d_sq
+            best = leaf
+    return best
+
+
+@wp.func
 def _winds_inward(bvh: BvhView, leaf: int, inv_side: float) -> bool:
     """Whether `leaf`'s face winds inwards by the winding numbers: |w| is larger a step along its normal
     from its centroid than a step against it. Looked at from the centroid, not from a point on the face's
@@ -896,19 +912,10 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                     # gradient holds)
                     near = scale == 1 and nearest <= diagonal
                     if (outputs & (_OUT_NORMAL | _OUT_CLOSEST)) != 0 and not beyond and near:
-                        # the face nearest p of those recorded at the leaf's corners (a corner's own may be one
-                        # of several tied there, whichever its search met first)
                         # p's nearest face, searched from the nearest of those recorded at the leaf's corners
                         # (p's own face need not be one of them: directions from those lay nearly in the sheet)
-                        near_leaf = corner_leaf[nearest_corner]
-                        near_sq = leaf_distance_sq(bvh, near_leaf, p)
-                        for corner in range(8):
-                            other = corner_leaf[leaf_corner(tree, node, octant, corner)]
-                            other_sq = leaf_distance_sq(bvh, other, p)
-                            if other_sq < near_sq:
-                                near_sq = other_sq
-                                near_leaf = other
-                        near_leaf, near_sq, _done = _nearest_with_band(bvh, p, near_leaf, 0.0, UNLIMITED_VISITS)
+                        seed_leaf = _nearest_corner_face(tree, corner_leaf, node, octant, bvh, p)
+                        near_leaf, _near_sq, _done = _nearest_with_band(bvh, p, seed_leaf, 0.0, UNLIMITED_VISITS)
                         a, b, c = leaf_triangle(bvh, near_leaf)
                         foot, _feature = closest_point_on_triangle(p, a, b, c)
                         away = p - foot
@@ -932,13 +939,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                         out_face[i] = face
                     return
             # exact: start from the nearest of the faces recorded at the cell's corners
-            best_sq = float(3.0e38)
-            for corner in range(8):
-                leaf = corner_leaf[leaf_corner(tree, node, octant, corner)]
-                d_sq = leaf_distance_sq(bvh, leaf, p)
-                if d_sq < best_sq:
-                    best_sq = d_sq
-                    seed = leaf
+            seed = _nearest_corner_face(tree, corner_leaf, node, octant, bvh, p)
         else:
             seed = spatial_seed(bvh, p, tree.origin, inv_side)
 
