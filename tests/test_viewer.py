@@ -8,6 +8,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -280,13 +281,19 @@ def test_badf_view_serves_the_page_and_stops_on_sigint(served) -> None:
     endpoint, _, _ = served
     port = free_port()
     code = f"from badf.cli import main; raise SystemExit(main(['view', '--connect', '{endpoint}', '--port', '{port}']))"
-    process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                               text=True)
+    said: list[str] = []  # stderr, read as it comes: the page answers while the viewer still starts, before
+    reader = threading.Thread(target=lambda: said.extend(process.stderr), daemon=True)  # it says "open"
+    reader.start()
     try:
-        wait_until(lambda: page_answers(port) or process.poll() is not None, timeout=120, what="the page")
-        assert process.poll() is None, process.stderr.read().decode()
+        wait_until(lambda: (page_answers(port) and any("badf view: open" in line for line in said))
+                   or process.poll() is not None, timeout=120, what="the page and the viewer's 'open' line")
+        assert process.poll() is None, "".join(said)
         process.send_signal(signal.SIGINT)
         assert process.wait(timeout=60) == 0
-        assert f"open http://127.0.0.1:{port}/" in process.stderr.read().decode()
+        reader.join(30)
+        assert f"open http://127.0.0.1:{port}/" in "".join(said)
     finally:
         if process.poll() is None:
             process.kill()
