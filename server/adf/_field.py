@@ -43,6 +43,7 @@ from badf.server.adf._sign import (
     SIGN_METHODS,
     Pseudonormals,
     analyse_topology,
+    beside_points,
     components_disagree,
     encloses_volume,
     face_components,
@@ -289,7 +290,8 @@ class DistanceField:
             self._parts_overlap = False
             if self._sign_requested == "auto" and self._sign == "pseudonormal":
                 self._parts_overlap = surface_enters_solid(
-                    self._bvh.view(), self._vertices, self._faces, spread_sample(parts, SOLID_BESIDE_SAMPLE),
+                    self._bvh.view(), self._vertices, self._faces,
+                    beside_points(spread_sample(parts, SOLID_BESIDE_SAMPLE), len(f)),
                     self._normals.extent, self._device)
                 if not self._parts_overlap:
                     self._normals.watch_parts(frame_watch_order(len(f)), SOLID_WATCH_SAMPLE)

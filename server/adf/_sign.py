@@ -30,6 +30,11 @@ _SIGN_CODES = {"none": SIGN_NONE, "pseudonormal": SIGN_PSEUDONORMAL, "winding": 
 _DEGENERATE = wp.constant(DEGENERATE_AREA)
 _MIN_ENCLOSED = wp.constant(MIN_ENCLOSED_VOLUME)
 _BESIDE_REACH = wp.constant(SOLID_BESIDE_REACH)
+# Points per face that beside_points may look beside (the centroid and six more), and the face count up to
+# which it does (then 7 x 2,048 points fit the registration's check of 16,384 at once).
+POINTS_PER_FACE = 7
+COARSE_FACES = 2048
+_POINTS_PER_FACE = wp.constant(POINTS_PER_FACE)
 
 
 @dataclass(frozen=True)
@@ -222,11 +227,22 @@ def spread_sample(label: np.ndarray, limit: int) -> np.ndarray:
     return order[starts[part] + ((2 * rank + 1) * sizes[part]) // (2 * share[part])].astype(np.int32)
 
 
+def beside_points(faces: np.ndarray, face_count: int) -> np.ndarray:
+    """The points `surface_enters_solid` looks beside, as slots face * POINTS_PER_FACE + k: on a mesh of at
+    most COARSE_FACES faces each face's centroid and six more points inside it, near its corners and edge
+    midpoints (a coarse face's centroid can lie outside another part that crosses the face elsewhere: two
+    12-triangle boxes crossing in a "+"); on a finer one the centroids alone."""
+    faces = np.asarray(faces, np.int64)
+    if face_count > COARSE_FACES:
+        return (faces * POINTS_PER_FACE).astype(np.int32)
+    return (faces[:, None] * POINTS_PER_FACE + np.arange(POINTS_PER_FACE)).reshape(-1).astype(np.int32)
+
+
 def surface_enters_solid(bvh: BvhView, vertices: wp.array, faces: wp.array, sample: np.ndarray,
                          extent: wp.array, device) -> bool:
-    """Whether any sampled face (`spread_sample`) of a closed, outward-facing mesh has the solid just
-    outside it: a point SOLID_BESIDE_REACH of the mesh's `extent` (a (1,) device array) off its centroid,
-    along its normal, with |winding number| > 1/2.
+    """Whether any sampled point (`beside_points` of a `spread_sample` of faces) of a closed, outward-facing
+    mesh has the solid just outside it: SOLID_BESIDE_REACH of the mesh's `extent` (a (1,) device array) off
+    the face, along its normal, |winding number| > 1/2.
 
     That is the case where parts are nested (a shell inside a shell facing the same way) or run into each
     other or themselves. Pseudonormals then say "outside" between the inner surface and the outer one,
@@ -242,9 +258,11 @@ def surface_enters_solid(bvh: BvhView, vertices: wp.array, faces: wp.array, samp
 
 
 def frame_watch_order(face_count: int) -> np.ndarray:
-    """Every face once, in an order whose every run of consecutive entries is spread over the whole mesh
-    (a fixed pseudo-random permutation, so two objects of one mesh check the same faces frame by frame)."""
-    return np.random.default_rng(0).permutation(face_count).astype(np.int32)
+    """Every point of `beside_points` of every face once, in an order whose every run of consecutive entries
+    is spread over the whole mesh (a fixed pseudo-random permutation, so two objects of one mesh check the
+    same points frame by frame)."""
+    slots = beside_points(np.arange(face_count), face_count)
+    return slots[np.random.default_rng(0).permutation(len(slots))]
 
 
 def resolve_sign(requested: str, topology: Topology, solid: bool) -> str:
@@ -339,8 +357,8 @@ class Pseudonormals:
             self.extent.fill_(extent)
 
     def watch_parts(self, order: np.ndarray, per_frame: int) -> None:
-        """From the next frame on, look beside `per_frame` faces of `order` each frame, a window that moves on
-        through it frame by frame, for parts running into each other (surface_enters_solid), and sign a frame
+        """From the next frame on, look beside `per_frame` points of `order` (frame_watch_order) each frame, a
+        window that moves on through it, for parts running into each other (surface_enters_solid), and sign a frame
         where they do by winding numbers. For `auto`, whose first frame had none: a deforming mesh may come
         to overlap itself (an arm through the body)."""
         if self.method != "pseudonormal" or len(order) == 0:
@@ -436,19 +454,40 @@ def inside_by_pseudonormal(sign: SignView, bvh: BvhView, p: wp.vec3, face: int, 
 
 @wp.kernel(enable_backward=False)
 def _solid_beside_face(bvh: BvhView, vertices: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.vec3i),
-                       faces_of: wp.array(dtype=wp.int32), start: wp.array(dtype=wp.int32),
+                       slots: wp.array(dtype=wp.int32), start: wp.array(dtype=wp.int32),
                        extent: wp.array(dtype=wp.float32), found: wp.array(dtype=wp.int32)):
-    """The faces_of[(start + i) mod len] for this launch's i (see surface_enters_solid)."""
-    tri = faces[faces_of[(start[0] + wp.tid()) % faces_of.shape[0]]]
+    """The point slots[(start + i) mod len] for this launch's i (see surface_enters_solid, beside_points)."""
+    slot = slots[(start[0] + wp.tid()) % slots.shape[0]]
+    tri = faces[slot // _POINTS_PER_FACE]
     a, b, c = vertices[tri[0]], vertices[tri[1]], vertices[tri[2]]
     n = wp.cross(b - a, c - a)
     length = wp.length(n)
     longest_sq = wp.max(wp.max(wp.length_sq(b - a), wp.length_sq(c - b)), wp.length_sq(a - c))
     if length <= _DEGENERATE * longest_sq or length == 0.0:
         return  # no direction to step in
-    beside = (a + b + c) / 3.0 + n * (_BESIDE_REACH * extent[0] / length)
+    w = _beside_weights(slot % _POINTS_PER_FACE)
+    beside = w[0] * a + w[1] * b + w[2] * c + n * (_BESIDE_REACH * extent[0] / length)
     if wp.abs(winding_number(bvh, beside)) > 0.5:
         found[0] = 1
+
+
+@wp.func
+def _beside_weights(k: int) -> wp.vec3:
+    """Barycentric weights of a face's k-th point (beside_points): its centroid, then three near its
+    corners and three near its edges' midpoints, each a tenth of the face's height inside."""
+    if k == 0:
+        return wp.vec3(1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0)
+    if k == 1:
+        return wp.vec3(0.8, 0.1, 0.1)
+    if k == 2:
+        return wp.vec3(0.1, 0.8, 0.1)
+    if k == 3:
+        return wp.vec3(0.1, 0.1, 0.8)
+    if k == 4:
+        return wp.vec3(0.45, 0.45, 0.1)
+    if k == 5:
+        return wp.vec3(0.1, 0.45, 0.45)
+    return wp.vec3(0.45, 0.1, 0.45)
 
 
 @wp.kernel(enable_backward=False)
