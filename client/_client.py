@@ -304,7 +304,13 @@ class Client:
         """The one reply of `worker` to `request` on `key`, decoded as `expect`, or the error it carries;
         `life` (a handle's) makes a worker that went since then, even if back, count as gone."""
         self._check_worker(worker, name, life)
-        for reply in self._get(key, request, timeout=timeout, cancellation=self._cancellation(worker)):
+        try:
+            replies = self._get(key, request, timeout=timeout, cancellation=self._cancellation(worker))
+        except WorkerUnavailableError:
+            if self._worker_gone(worker, life):  # its token went as the request left: "Query was cancelled"
+                raise self._gone_error(worker, name) from None
+            raise
+        for reply in replies:
             try:
                 return self._read_reply(reply, expect, key, timeout)
             except BadfError:
@@ -367,9 +373,14 @@ class Client:
         Zenoh itself answers the info request with an error ("Timeout"), which says nobody is there."""
         if self._worker_gone(worker):
             return False
-        replies = self._get(
-            self.keys.worker_info(worker), InfoRequest(), timeout=timeout, cancellation=self._cancellation(worker)
-        )
+        try:
+            replies = self._get(
+                self.keys.worker_info(worker), InfoRequest(), timeout=timeout, cancellation=self._cancellation(worker)
+            )
+        except WorkerUnavailableError:
+            if self._worker_gone(worker):  # its token went as the request left: "Query was cancelled"
+                return False
+            raise
         return any(reply.ok is not None or _is_error_reply(reply.err.payload.to_bytes()) for reply in replies)
 
     def _publisher(self, key: str) -> zenoh.Publisher:
