@@ -89,6 +89,9 @@ class Counters:
     points_answered: int = 0
     errors: int = 0
 
+    def __add__(self, other: Counters) -> Counters:
+        return Counters(**{name: value + getattr(other, name) for name, value in vars(self).items()})
+
 
 @dataclass
 class _PendingFrame:
@@ -226,8 +229,7 @@ class ServedObject:
         """Everything counted under this name since it was first registered, replaced registrations
         included: the worker's totals, which never go backwards."""
         with self._lock:
-            return Counters(**{name: value + getattr(self._replaced_counters, name)
-                               for name, value in vars(self._counters).items()})
+            return self._counters + self._replaced_counters
 
     def info(self) -> ObjectInfo:
         with self._lock:
@@ -470,8 +472,7 @@ class ServedObject:
                 self._field, self._options, self._frame = field, options, frame
                 self._vertices, self._faces = vertices, faces
                 self._vertex_count, self._face_count = field.vertex_count, field.face_count
-                for name, value in vars(self._counters).items():
-                    setattr(self._replaced_counters, name, getattr(self._replaced_counters, name) + value)
+                self._replaced_counters += self._counters
                 self._counters = Counters()
                 self._last_error = None
                 stale, self._pending = list(self._pending.values()), {}

@@ -304,8 +304,7 @@ class Worker:
         with self._lock:
             if self._objects.get(served.name) is served:
                 del self._objects[served.name]
-            for name, value in vars(counters).items():
-                setattr(self._retired, name, getattr(self._retired, name) + value)
+            self._retired += counters
 
     # --- worker info and stats ----------------------------------------------------------------------
 
@@ -334,10 +333,10 @@ class Worker:
 
     def totals(self) -> Counters:
         """Counters summed over every object this worker has served."""
-        totals = Counters(**vars(self._retired))
+        with self._lock:
+            totals = self._retired
         for served in self.objects():
-            for name, value in vars(served.counters()).items():
-                setattr(totals, name, getattr(totals, name) + value)
+            totals += served.counters()
         return totals
 
     def stats_line(self) -> str:
