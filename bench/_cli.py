@@ -8,6 +8,7 @@ import math
 import pathlib
 import sys
 
+from badf.server._cuda import device_problem
 from badf.server._mesh_files import MeshFileError
 
 _BENCHMARKS = {
@@ -90,18 +91,6 @@ def check_flags(flags: argparse.Namespace) -> None:
     if render is not None and not pathlib.Path(render).is_file():
         raise BenchFlagError(f"--render: no such file {render!r}")
     device = getattr(flags, "device", None)
-    if device is not None:
-        _check_device(device)
-
-
-def _check_device(device: str) -> None:
-    try:
-        import warp as wp
-    except ImportError:
-        return  # the benchmark says so itself
-    wp.config.log_level = wp.LOG_ERROR  # no banner before the one line
-    wp.init()
-    try:
-        wp.get_device(device)
-    except (RuntimeError, ValueError, KeyError) as error:
-        raise BenchFlagError(f"--device {device!r} is not a device here ({error}); try cpu or cuda:0") from None
+    problem = None if device is None else device_problem(device)
+    if problem is not None:
+        raise BenchFlagError(problem)

@@ -1,5 +1,6 @@
 """How many CUDA devices this process may use, asked of the CUDA driver without creating a context, so the
-process that starts one worker per GPU neither imports Warp nor holds GPU memory."""
+process that starts one worker per GPU neither imports Warp nor holds GPU memory; and, for command lines
+that name a device, whether Warp has it (`device_problem`, which does import Warp)."""
 
 from __future__ import annotations
 
@@ -82,3 +83,19 @@ def parse_gpus(text: str, visible: int) -> list[int]:
     if len(set(indices)) != len(indices):
         raise ValueError(f"--gpus names a device twice: {text!r}")
     return indices
+
+
+def device_problem(device: str) -> str | None:
+    """Why Warp has no device `device` here ("--device ... is not a device here"), or None; None too where
+    Warp is not installed (what runs on the device says so itself). For command lines, before they start."""
+    try:
+        import warp as wp
+    except ImportError:
+        return None
+    wp.config.log_level = wp.LOG_ERROR  # no banner before the one line
+    wp.init()
+    try:
+        wp.get_device(device)
+    except (RuntimeError, ValueError, KeyError) as error:
+        return f"--device {device!r} is not a device here ({error}); try cpu or cuda:0"
+    return None

@@ -22,6 +22,7 @@ from contextlib import ExitStack
 import numpy as np
 
 from badf.protocol import DEFAULT_ENDPOINT, DEFAULT_LIMITS, MAX_NAME_LENGTH, BadfError, InvalidOptionError, zenoh_config
+from badf.server._cuda import device_problem
 from badf.server._mesh_files import MeshFileError, read_frames, read_mesh
 
 # Depth when none is given: what keeps frames interactive on each kind of device.
@@ -81,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"badf demo: {error}", file=sys.stderr)
         return 2
     device = args.device or _default_device()
-    problem = _device_problem(device)
+    problem = device_problem(device)
     if problem is None and not args.no_viewer:
         problem = _host_problem(args.host)
     if problem is not None:
@@ -133,21 +134,6 @@ def _default_device() -> str:
         return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
     except ImportError:
         return "cpu"
-
-
-def _device_problem(device: str) -> str | None:
-    """Why the worker could not run on `device` (before anything starts), or None."""
-    try:
-        import warp as wp
-    except ImportError:
-        return None  # the worker says so itself
-    wp.config.log_level = wp.LOG_ERROR
-    wp.init()
-    try:
-        wp.get_device(device)
-    except (RuntimeError, ValueError, KeyError) as error:
-        return f"--device {device!r} is not a device here ({error}); try cpu or cuda:0"
-    return None
 
 
 def _host_problem(host: str) -> str | None:
