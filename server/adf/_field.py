@@ -188,6 +188,11 @@ class _Domain:
         """A band in local units, at least MIN_BAND of the side (so its square stays a normal float32)."""
         return None if band is None else max(band * self.scale, MIN_BAND * self.local_side)
 
+    def band_in_force(self, band: float | None) -> float | None:
+        """The band the kernels clamp at (`local_band`, as the float32 they take), in world units."""
+        local = self.local_band(band)
+        return None if local is None else float(np.float32(local)) / self.scale
+
     @property
     def origin(self) -> wp.vec3:
         """The cube's lowest corner in local coordinates."""
@@ -418,8 +423,7 @@ class DistanceField:
             if beyond is not None:
                 rows, extra = beyond
                 moved = distance[rows] + extra
-                # at the band the searches clamped at (widened with the domain: band_in_force)
-                distance[rows] = moved if band is None else np.minimum(moved, float(np.float32(band)) / domain.scale)
+                distance[rows] = moved if band is None else np.minimum(moved, domain.band_in_force(self._band))
         if "closest_point" in arrays:
             closest = arrays["closest_point"]
             _to_world_units(closest, domain.scale)
@@ -508,7 +512,7 @@ class DistanceField:
             "sign_this_frame": self._normals.frame_method,
             "band": self._band,
             # the band the searches clamp at: the one asked for, or MIN_BAND of a domain that has grown since
-            "band_in_force": None if self._band is None else self._domain.local_band(self._band) / self._domain.scale,
+            "band_in_force": self._domain.band_in_force(self._band),
             "coherence": self._coherence,
             "refine": self._refine,
             "halo": self._halo,
