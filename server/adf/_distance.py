@@ -34,8 +34,16 @@ from badf.server.adf._geometry import (
     quantize,
 )
 from badf.server.adf._octree import OctreeView, leaf_corner, locate
-from badf.server.adf._sign import SIGN_PSEUDONORMAL, SIGN_WINDING, SignView, feature_normal, inside_by_pseudonormal, inside_by_winding
-from badf.server.adf._tolerances import DEGENERATE_AREA, SURFACE_SNAP
+from badf.server.adf._sign import (
+    SIGN_PSEUDONORMAL,
+    SIGN_WINDING,
+    SignView,
+    feature_normal,
+    inside_by_pseudonormal,
+    inside_by_winding,
+    lends_no_normal,
+)
+from badf.server.adf._tolerances import SURFACE_SNAP
 
 # No fused multiply-adds in this module's kernels (nor in the point queries'): with them, the compiler may
 # round the same triangle arithmetic differently where it is inlined at two places, so a seed's distance
@@ -46,7 +54,6 @@ EXACT_ROUNDING = {"fuse_fp": False}
 wp.set_module_options(EXACT_ROUNDING)
 
 _SURFACE_SNAP = wp.constant(SURFACE_SNAP)
-_DEGENERATE = wp.constant(DEGENERATE_AREA)
 # How far (in domain sides) off the surface an on-surface exact normal looks for the winding numbers' inside
 _SIDE_STEP = wp.constant(16.0 * SURFACE_SNAP)
 
@@ -160,8 +167,9 @@ class CornerField:
         `choose_sign(stream)` queues what decides the frame's sign method on that stream (None: the current
         one); it runs beside the searches, before the signs."""
         b = self.buffers
-        choosing = self._choosing.fork() if choose_sign is not None else None
+        choosing = None
         if choose_sign is not None:
+            choosing = self._choosing.fork()
             choose_sign(choosing)
         self.value = b.ensure("corner.value", capacity, wp.float32)
         self.leaf = b.ensure("corner.leaf", capacity, wp.int32)
@@ -444,10 +452,9 @@ def _face_normal(bvh: BvhView, leaf: int) -> wp.vec3:
     a, b, c = leaf_triangle(bvh, leaf)
     n = wp.cross(b - a, c - a)
     length = wp.length(n)
-    longest_sq = wp.max(wp.max(wp.length_sq(b - a), wp.length_sq(c - b)), wp.length_sq(a - c))
-    if length > _DEGENERATE * longest_sq and length > 0.0:
-        return n / length
-    return wp.vec3(0.0)
+    if lends_no_normal(a, b, c, length):
+        return wp.vec3(0.0)
+    return n / length
 
 
 @wp.func

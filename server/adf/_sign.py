@@ -452,6 +452,14 @@ def inside_by_pseudonormal(sign: SignView, bvh: BvhView, p: wp.vec3, face: int, 
     return inside_by_winding(bvh, p)
 
 
+@wp.func
+def lends_no_normal(a: wp.vec3, b: wp.vec3, c: wp.vec3, cross_length: float) -> bool:
+    """Whether triangle abc, whose edges' cross product (b - a) x (c - a) has this length, is too degenerate to
+    lend a normal: doubled area at most DEGENERATE_AREA of its longest edge squared, or none at all."""
+    longest_sq = wp.max(wp.max(wp.length_sq(b - a), wp.length_sq(c - b)), wp.length_sq(a - c))
+    return cross_length <= _DEGENERATE * longest_sq or cross_length == 0.0
+
+
 @wp.kernel(enable_backward=False)
 def _solid_beside_face(bvh: BvhView, vertices: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.vec3i),
                        slots: wp.array(dtype=wp.int32), start: wp.array(dtype=wp.int32),
@@ -462,8 +470,7 @@ def _solid_beside_face(bvh: BvhView, vertices: wp.array(dtype=wp.vec3), faces: w
     a, b, c = vertices[tri[0]], vertices[tri[1]], vertices[tri[2]]
     n = wp.cross(b - a, c - a)
     length = wp.length(n)
-    longest_sq = wp.max(wp.max(wp.length_sq(b - a), wp.length_sq(c - b)), wp.length_sq(a - c))
-    if length <= _DEGENERATE * longest_sq or length == 0.0:
+    if lends_no_normal(a, b, c, length):
         return  # no direction to step in
     w = _beside_weights(slot % _POINTS_PER_FACE)
     beside = w[0] * a + w[1] * b + w[2] * c + n * (_BESIDE_REACH * extent[0] / length)
@@ -518,10 +525,9 @@ def _face_normals(
     c = vertices[tri[2]]
     n = wp.cross(b - a, c - a)
     wp.atomic_add(volume_area, 0, wp.dot(a, wp.cross(b, c)) / 6.0)
-    wp.atomic_add(volume_area, 1, 0.5 * wp.length(n))
-    longest_sq = wp.max(wp.max(wp.length_sq(b - a), wp.length_sq(c - b)), wp.length_sq(a - c))
     length = wp.length(n)
-    if length <= _DEGENERATE * longest_sq or length == 0.0:
+    wp.atomic_add(volume_area, 1, 0.5 * length)
+    if lends_no_normal(a, b, c, length):
         face_normal[f] = wp.vec3(0.0)
         face_angles[f] = wp.vec3(0.0)
         return
