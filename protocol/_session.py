@@ -70,7 +70,23 @@ def _endpoints_json(endpoints: Sequence[str], role: str) -> str:
                 f"{role} endpoint {endpoint!r} is not a Zenoh endpoint: expected PROTOCOL/ADDRESS, "
                 f"for instance {DEFAULT_ENDPOINT}"
             ) from None
+        port = _port_of(endpoint)
+        if port is not None and not 0 <= port <= 65535:
+            raise InvalidOptionError(f"{role} endpoint {endpoint!r} names port {port}: a port is 0 to 65535")
     return json.dumps(list(endpoints))
+
+
+_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+
+
+def _port_of(endpoint: str) -> int | None:
+    """The port of an IP endpoint (PROTOCOL/HOST:PORT, metadata after '?' or '#' aside), if it names one."""
+    protocol, _, address = endpoint.partition("/")
+    address = re.split(r"[?#]", address, maxsplit=1)[0]
+    host, colon, port = address.rpartition(":")
+    if protocol.lower() not in _IP_PROTOCOLS or not colon or not port.isdigit():
+        return None
+    return int(port)
 
 
 def zenoh_message(error: Exception) -> str:

@@ -15,6 +15,8 @@ CASES = [
     (["serve", "--listen", "notanendpoint"], "listen endpoint 'notanendpoint' is not a Zenoh endpoint"),
     (["serve", "--listen", "<free>", "--connect", "garbage"], "connect endpoint 'garbage' is not a Zenoh endpoint"),
     (["serve", "--router-only", "--listen", "nowhere"], "listen endpoint 'nowhere' is not a Zenoh endpoint"),
+    (["serve", "--listen", "tcp/127.0.0.1:99999"], "names port 99999: a port is 0 to 65535"),
+    (["serve", "--listen", "<free>", "--connect", "tcp/127.0.0.1:70000?iface=lo"], "names port 70000"),
     (["serve", "--listen", "<free>", "--config", "/nonexistent/badf.json5"], "cannot use the Zenoh config file"),
     (["view", "--connect", "notanendpoint"], "connect endpoint 'notanendpoint' is not a Zenoh endpoint"),
     (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--depth", "0"], "--depth must be in 1..10, got 0"),
