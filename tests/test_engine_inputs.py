@@ -212,3 +212,24 @@ def test_info_says_which_band_is_in_force_after_the_domain_grew(device):
     for mode in ("exact", "adf"):  # a point beyond 2^40 sides too, which is moved in before the search
         far = field.query(np.array([[5e3, 0.0, 0.0], [1e17, 0.0, 0.0]]), mode=mode).distance
         np.testing.assert_allclose(far, in_force, rtol=1e-6)
+
+
+@pytest.mark.parametrize(("scale", "band"), [(1e-6, 1e35), (1.0, 1e300)])
+def test_a_band_wider_than_any_distance_changes_nothing_and_info_stays_json(device, scale, band):
+    """A band whose local value passed float32's range (1e35 on a mesh of 1e-6) was reported as an infinite
+    band_in_force, which is not JSON (the worker could not send the object's info)."""
+    import json
+
+    vertices, faces = meshes.sphere()
+    vertices = vertices * scale
+    banded = DistanceField(vertices, faces, depth=4, band=band, device=device)
+    plain = DistanceField(vertices, faces, depth=4, device=device)
+    assert banded.info()["band_in_force"] == band
+    json.dumps(banded.info(), allow_nan=False)
+    json.dumps(banded.stats(), allow_nan=False)
+    points = np.random.default_rng(3).uniform(-2.0, 2.0, (500, 3)) * scale
+    points = np.vstack([points, [[1e15 * scale, 0.0, 0.0], [3e17, 0.0, 0.0]]])
+    for mode in ("adf", "exact"):
+        got, want = banded.query(points, mode=mode).distance, plain.query(points, mode=mode).distance
+        assert np.all(np.isfinite(got))
+        np.testing.assert_array_equal(got, want)

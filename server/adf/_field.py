@@ -57,6 +57,7 @@ from badf.server.adf._tolerances import (
     CENTRE_SNAP,
     DOMAIN_MARGIN,
     FAR_POINT,
+    MAX_KERNEL_BAND,
     MIN_BAND,
     QUERY_CHUNK,
     REDOMAIN_MIN_FILL,
@@ -185,13 +186,21 @@ class _Domain:
         return self.side * self.scale
 
     def local_band(self, band: float | None) -> float | None:
-        """A band in local units, at least MIN_BAND of the side (so its square stays a normal float32)."""
-        return None if band is None else max(band * self.scale, MIN_BAND * self.local_side)
+        """A band in local units, at least MIN_BAND of the side (so its square stays a normal float32) and at
+        most MAX_KERNEL_BAND sides (beyond every distance the kernels meet, and within float32's range)."""
+        if band is None:
+            return None
+        return min(max(band * self.scale, MIN_BAND * self.local_side), MAX_KERNEL_BAND * self.local_side)
 
     def band_in_force(self, band: float | None) -> float | None:
-        """The band the kernels clamp at (`local_band`, as the float32 they take), in world units."""
+        """The band distances are clamped at, in world units: the kernels' (`local_band`, as the float32 they
+        take), or the one asked for where that is wider than any distance they meet (far points only)."""
         local = self.local_band(band)
-        return None if local is None else float(np.float32(local)) / self.scale
+        if local is None:
+            return None
+        if local >= MAX_KERNEL_BAND * self.local_side:
+            return float(band)
+        return float(np.float32(local)) / self.scale
 
     @property
     def origin(self) -> wp.vec3:

@@ -68,6 +68,11 @@ MIN_BAND = 2.0**-40
 # it (and the move added to their distance), so no square of a length overflows float32 in the kernels.
 FAR_POINT = 2.0**40
 
+# A band wider than this many domain sides is beyond every distance the kernels meet (their points lie
+# within FAR_POINT sides), so they take this instead: a wider one could overflow float32 (1e35 on a mesh of
+# 1e-6). Far points moved in (FAR_POINT) are still clamped at the band asked for, on the host.
+MAX_KERNEL_BAND = 2.0**44
+
 # Points are sent to the device in batches of at most this many, so memory stays bounded.
 QUERY_CHUNK = 1 << 20
 
