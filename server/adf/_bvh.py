@@ -37,6 +37,7 @@ from badf.server.adf._geometry import (
     morton3,
     quantize,
     solid_angle,
+    solid_angle_careful,
     stack_float,
     stack_int,
     thread_fence,
@@ -378,41 +379,57 @@ def _far_field(bvh: BvhView, node: int, u: wp.vec3, dist: float) -> float:
     return (wp.dot(_xyz(load_vec4(bvh.node_moments, 4 * node + 1)), u) + first) / (dist * dist)
 
 
-@wp.func
-def winding_number(bvh: BvhView, p: wp.vec3) -> float:
-    """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018)."""
-    if bvh.internal_count == 0:
-        a, b, c = leaf_triangle(bvh, 0)  # a single triangle, and no tree
-        return solid_angle(p, a, b, c) * _INV_FOUR_PI
-    nodes = stack_int()
-    nodes[0] = 0
-    count = int(1)
-    total = float(0.0)
-    while count > 0:
-        count -= 1
-        slot = 2 * nodes[count]
-        for side in range(2):
-            child = bvh.slot_child[slot + side]
-            if child >= bvh.internal_count:  # a single triangle: its dipole far away, else its solid angle
-                leaf = child - bvh.internal_count
-                a, b, c = leaf_triangle(bvh, leaf)
-                centre_radius, normal_area = leaf_moments(a, b, c)
-                offset = _xyz(centre_radius) - p
-                dist = wp.length(offset)
-                if dist > _FAR_FIELD * centre_radius[3]:
-                    total += wp.dot(_xyz(normal_area), offset / dist) / (dist * dist)
+def _winding_number_function(careful: bool):
+    """The winding number's walk, taking each near triangle's solid angle from `solid_angle` or, `careful`,
+    from `solid_angle_careful` (float64 where float32 cancels), whose extra registers the corners' winding
+    kernel does without."""
+
+    def winding_number(bvh: BvhView, p: wp.vec3) -> float:
+        """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018)."""
+        if bvh.internal_count == 0:
+            a, b, c = leaf_triangle(bvh, 0)  # a single triangle, and no tree
+            if wp.static(careful):
+                return solid_angle_careful(p, a, b, c) * _INV_FOUR_PI
+            return solid_angle(p, a, b, c) * _INV_FOUR_PI
+        nodes = stack_int()
+        nodes[0] = 0
+        count = int(1)
+        total = float(0.0)
+        while count > 0:
+            count -= 1
+            slot = 2 * nodes[count]
+            for side in range(2):
+                child = bvh.slot_child[slot + side]
+                if child >= bvh.internal_count:  # a single triangle: its dipole far away, else its solid angle
+                    leaf = child - bvh.internal_count
+                    a, b, c = leaf_triangle(bvh, leaf)
+                    centre_radius, normal_area = leaf_moments(a, b, c)
+                    offset = _xyz(centre_radius) - p
+                    dist = wp.length(offset)
+                    if dist > _FAR_FIELD * centre_radius[3]:
+                        total += wp.dot(_xyz(normal_area), offset / dist) / (dist * dist)
+                    elif wp.static(careful):
+                        total += solid_angle_careful(p, a, b, c)
+                    else:
+                        total += solid_angle(p, a, b, c)
                 else:
-                    total += solid_angle(p, a, b, c)
-            else:
-                centre_radius = load_vec4(bvh.node_moments, 4 * child)
-                offset = _xyz(centre_radius) - p
-                dist = wp.length(offset)
-                if dist > _FAR_FIELD * centre_radius[3]:
-                    total += _far_field(bvh, child, offset / dist, dist)
-                else:
-                    nodes[count] = child
-                    count += 1
-    return total * _INV_FOUR_PI
+                    centre_radius = load_vec4(bvh.node_moments, 4 * child)
+                    offset = _xyz(centre_radius) - p
+                    dist = wp.length(offset)
+                    if dist > _FAR_FIELD * centre_radius[3]:
+                        total += _far_field(bvh, child, offset / dist, dist)
+                    else:
+                        nodes[count] = child
+                        count += 1
+        return total * _INV_FOUR_PI
+
+    winding_number.__name__ = winding_number.__qualname__ = "winding_number_careful" if careful else "winding_number"
+    return wp.func(winding_number)
+
+
+# the corners' (fast: float32 throughout) and everything else's (queries, the overlap check, orientation)
+winding_number = _winding_number_function(False)
+winding_number_careful = _winding_number_function(True)
 
 
 @wp.kernel(enable_backward=False)

@@ -21,7 +21,7 @@ from badf.server.adf._bvh import (
     nearest_in_slot,
     nearest_leaf_within,
     spatial_seed,
-    winding_number,
+    winding_number_careful,
 )
 from badf.server.adf._geometry import (
     atomic_min_packed,
@@ -41,6 +41,7 @@ from badf.server.adf._sign import (
     feature_normal,
     inside_by_pseudonormal,
     inside_by_winding,
+    inside_by_winding_careful,
     lends_no_normal,
 )
 from badf.server.adf._tolerances import SURFACE_SNAP
@@ -54,9 +55,9 @@ EXACT_ROUNDING = {"fuse_fp": False}
 wp.set_module_options(EXACT_ROUNDING)
 
 _SURFACE_SNAP = wp.constant(SURFACE_SNAP)
-# An ADF gradient shorter than this (a distance field's has length 1) has lost its direction: the normal
-# comes from the nearest face instead
-_WEAK_GRADIENT = wp.constant(0.5)
+# An ADF gradient shorter than this (a distance field's has length 1) has lost its direction: the point
+# is answered exactly instead
+_WEAK_GRADIENT = wp.constant(0.01)
 # How far (in domain sides) off the surface an on-surface exact normal looks for the winding numbers' inside
 _SIDE_STEP = wp.constant(16.0 * SURFACE_SNAP)
 
@@ -526,7 +527,7 @@ def _winds_inward(bvh: BvhView, leaf: int, inv_side: float) -> bool:
         return False
     centre = (a + b + c) / 3.0
     step = n * (_SIDE_STEP / (inv_side * length))
-    return wp.abs(winding_number(bvh, centre + step)) > wp.abs(winding_number(bvh, centre - step))
+    return wp.abs(winding_number_careful(bvh, centre + step)) > wp.abs(winding_number_careful(bvh, centre - step))
 
 
 @wp.func
@@ -914,33 +915,33 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 beyond = band > 0.0 and wp.abs(value) >= band  # at the band: no face, no closest point, no normal
                 if length > 0.0 and not beyond:
                     unit = grad / length
-                # |d| interpolated across a sheet has a V-shaped valley whose gradient is zero or points towards
-                # the sheet within a cell of it (only in a finest leaf, which the surface may cross: in a coarser
-                # one the interpolated gradient holds); and where a leaf's corners have their nearest points on
-                # opposite sides (a medial axis runs through it) the gradient can shrink to nothing: a point on
-                # the lattice there had a zero normal and itself as its closest point. In both, the direction
-                # from p's nearest face is the normal: away from it outside (and unsigned), towards it inside;
-                # on an unsigned field's sheet, the face's own
-                weak = length < _WEAK_GRADIENT
                 if wp.static(unsigned):
-                    weak = weak or (scale == 1 and nearest <= diagonal)
-                if (outputs & (_OUT_NORMAL | _OUT_CLOSEST)) != 0 and not beyond and not flat and weak:
-                    # p's nearest face, searched from the nearest of those recorded at the leaf's corners
-                    # (p's own face need not be one of them: directions from those lay nearly in the sheet)
-                    seed_leaf = _nearest_corner_face(tree, corner_leaf, node, octant, bvh, p)
-                    near_leaf, _near_sq, _done = _nearest_with_band(bvh, p, seed_leaf, 0.0, UNLIMITED_VISITS)
-                    a, b, c = leaf_triangle(bvh, near_leaf)
-                    foot, _feature = closest_point_on_triangle(p, a, b, c)
-                    away = p - foot
-                    away_length = wp.length(away)
-                    if away_length * inv_side > _SURFACE_SNAP:
-                        unit = away / away_length
-                        if value < 0.0:
-                            unit = -unit
-                    elif wp.static(unsigned):
-                        unit, _used = _surface_normal(tree, corner_leaf, node, octant, bvh, p, near_leaf)
+                    # |d| interpolated across a sheet has a V-shaped valley whose gradient is zero or points
+                    # towards the sheet within a cell of it; there the direction from the nearest corner's face
+                    # is the normal (off the face: away from it; on it: the face's own)
+                    # (only in a finest leaf, which the surface may cross: in a coarser one the interpolated
+                    # gradient holds)
+                    near = scale == 1 and nearest <= diagonal
+                    if (outputs & (_OUT_NORMAL | _OUT_CLOSEST)) != 0 and not beyond and near:
+                        # p's nearest face, searched from the nearest of those recorded at the leaf's corners
+                        # (p's own face need not be one of them: directions from those lay nearly in the sheet)
+                        seed_leaf = _nearest_corner_face(tree, corner_leaf, node, octant, bvh, p)
+                        near_leaf, _near_sq, _done = _nearest_with_band(bvh, p, seed_leaf, 0.0, UNLIMITED_VISITS)
+                        a, b, c = leaf_triangle(bvh, near_leaf)
+                        foot, _feature = closest_point_on_triangle(p, a, b, c)
+                        away = p - foot
+                        away_length = wp.length(away)
+                        if away_length * inv_side > _SURFACE_SNAP:
+                            unit = away / away_length
+                        else:
+                            unit, _used = _surface_normal(tree, corner_leaf, node, octant, bvh, p, near_leaf)
+                # where a leaf's corners have their nearest points on opposite sides (a medial axis runs through
+                # it) the interpolated gradient can shrink to nothing: points on the lattice there had a zero
+                # normal and themselves as closest point. Such a point is answered exactly (whatever outputs
+                # are asked for, so a distance does not depend on them)
+                weak = length < _WEAK_GRADIENT and not beyond and not flat
                 clear = scale > 1 or farthest > diagonal or nearest > 0.5 * diagonal
-                if not (has_inside and has_outside and clear):
+                if not (has_inside and has_outside and clear) and not weak:
                     if outputs & _OUT_DISTANCE:
                         out_distance[i] = value
                     if outputs & _OUT_NORMAL:
@@ -964,10 +965,10 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         if leaf < 0:
             inside = False
             if wp.static(winding):
-                inside = inside_by_winding(bvh, p)
+                inside = inside_by_winding_careful(bvh, p)
             if wp.static(pseudonormal):
                 if in_domain:
-                    inside = inside_by_winding(bvh, p)
+                    inside = inside_by_winding_careful(bvh, p)
             if outputs & _OUT_DISTANCE:
                 out_distance[i] = wp.where(inside, -band, band)
             if outputs & _OUT_NORMAL:
@@ -984,7 +985,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         d = wp.sqrt(best_sq)
         inside = False
         if wp.static(winding):
-            inside = inside_by_winding(bvh, p)
+            inside = inside_by_winding_careful(bvh, p)
         if wp.static(pseudonormal):
             if in_domain:
                 inside = inside_by_pseudonormal(sign, bvh, p, face, closest, feature)

@@ -341,18 +341,31 @@ def triangle_distance_sq(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> floa
     return h * h / n_sq
 
 
+@wp.func
+def solid_angle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
+    """Signed solid angle of triangle (a, b, c) seen from p (Van Oosterom and Strackee 1983), in float32."""
+    x = a - p
+    y = b - p
+    z = c - p
+    lx = wp.length(x)
+    ly = wp.length(y)
+    lz = wp.length(z)
+    det = wp.dot(x, wp.cross(y, z))
+    denominator = lx * ly * lz + wp.dot(x, y) * lz + wp.dot(x, z) * ly + wp.dot(y, z) * lx
+    return 2.0 * wp.atan2(det, denominator)
+
+
 # Where both terms of a solid angle's tangent are below this fraction of the product of the three lengths,
 # float32 has cancelled most of their digits (a point beside a long thin triangle, near the line of an edge,
-# sees it as about a half-sphere) and the angle is worked out again in float64
+# sees it as about a half-sphere)
 _HALF_SPHERE_CANCELLED = wp.constant(1.0e-3)
 
 
 @wp.func
-def solid_angle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
-    """Signed solid angle of triangle (a, b, c) seen from p (Van Oosterom and Strackee 1983).
-
-    In float32, but in float64 where float32 cancels: beside a needle 1e-4 of its length thick, the winding
-    numbers of points just outside came out near 1 instead of 0, so they were signed inside."""
+def solid_angle_careful(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
+    """`solid_angle`, worked out again in float64 where float32 cancels: beside a needle 1e-4 of its length
+    thick, the winding numbers of points just outside came out near 1 instead of 0. (The float64 path costs
+    registers, so the corners' winding kernel keeps the plain one.)"""
     x = a - p
     y = b - p
     z = c - p

@@ -15,7 +15,7 @@ import numpy as np
 import warp as wp
 
 from badf.server.adf._buffers import DeviceBuffers
-from badf.server.adf._bvh import BvhView, winding_number
+from badf.server.adf._bvh import BvhView, winding_number, winding_number_careful
 from badf.server.adf._geometry import EDGE_AB, EDGE_BC, FACE, VERTEX_A, VERTEX_B, VERTEX_C
 from badf.server.adf._tolerances import DEGENERATE_AREA, MIN_ENCLOSED_VOLUME, SOLID_BESIDE_REACH
 
@@ -441,6 +441,12 @@ def inside_by_winding(bvh: BvhView, p: wp.vec3) -> bool:
 
 
 @wp.func
+def inside_by_winding_careful(bvh: BvhView, p: wp.vec3) -> bool:
+    """`inside_by_winding` with float64 solid angles where float32 cancels (for queries, not the corners)."""
+    return wp.abs(winding_number_careful(bvh, p)) > 0.5
+
+
+@wp.func
 def inside_by_pseudonormal(sign: SignView, bvh: BvhView, p: wp.vec3, face: int, closest: wp.vec3, feature: int) -> bool:
     """By the pseudonormal of p's closest feature; by the winding number where there is none (face < 0:
     nothing within the band) or it is degenerate, or p lies on the feature's tangent plane, and in a frame
@@ -474,7 +480,7 @@ def _solid_beside_face(bvh: BvhView, vertices: wp.array(dtype=wp.vec3), faces: w
         return  # no direction to step in
     w = _beside_weights(slot % _POINTS_PER_FACE)
     beside = w[0] * a + w[1] * b + w[2] * c + n * (_BESIDE_REACH * extent[0] / length)
-    if wp.abs(winding_number(bvh, beside)) > 0.5:
+    if wp.abs(winding_number_careful(bvh, beside)) > 0.5:  # a false alarm signs a thin solid wrongly
         found[0] = 1
 
 
