@@ -87,6 +87,8 @@ def check_flags(flags: argparse.Namespace) -> None:
         path = getattr(flags, dest, None)
         if path is not None and not pathlib.Path(path).resolve().parent.is_dir():
             raise BenchFlagError(f"--{dest}: the folder of {path!r} does not exist")
+        if path is not None and pathlib.Path(path).is_dir():  # the run's results were lost at the end
+            raise BenchFlagError(f"--{dest}: {path!r} is a folder; name a file in it")
     render = getattr(flags, "render", None)
     if render is not None and not pathlib.Path(render).is_file():
         raise BenchFlagError(f"--render: no such file {render!r}")

@@ -105,6 +105,9 @@ class Client:
             raise WorkerUnavailableError(
                 f"cannot reach a Zenoh router at {', '.join(endpoints)}: {zenoh_message(error)}") from None
         self._publishers: dict[str, zenoh.Publisher] = {}
+        # one thread at a time uses the publishers: Zenoh refuses a publisher that another thread is putting
+        # through ("Already borrowed"), which made close() or delete() beside a streaming thread raise
+        self._publishing = threading.Lock()
         self._lock = threading.Lock()
         self._live: set[str] = set()  # workers whose liveliness token this client sees
         self._gone: set[str] = set()  # workers whose liveliness token this client saw go (and not come back)
@@ -130,14 +133,18 @@ class Client:
         an error that would otherwise end a `with Client(...)` block with a raw `zenoh.ZError`."""
         if self._session.is_closed():
             return
-        try:
-            self._liveliness.undeclare()
-            for publisher in self._publishers.values():
-                publisher.undeclare()
+        with self._publishing:
+            try:
+                self._liveliness.undeclare()
+                for publisher in self._publishers.values():
+                    publisher.undeclare()
+            except zenoh.ZError as error:
+                log.warning("closing the client's Zenoh session: %s", zenoh_message(error))
             self._publishers.clear()
-            self._session.close()
-        except zenoh.ZError as error:
-            log.warning("closing the client's Zenoh session: %s", zenoh_message(error))
+            try:
+                self._session.close()
+            except zenoh.ZError as error:
+                log.warning("closing the client's Zenoh session: %s", zenoh_message(error))
 
     # --- objects -------------------------------------------------------------------------------------
 
@@ -383,17 +390,20 @@ class Client:
             raise
         return any(reply.ok is not None or _is_error_reply(reply.err.payload.to_bytes()) for reply in replies)
 
-    def _publisher(self, key: str) -> zenoh.Publisher:
-        publisher = self._publishers.get(key)
-        if publisher is None:
-            publisher = self._session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
-            self._publishers[key] = publisher
-        return publisher
+    def _put(self, key: str, payload: bytes) -> None:
+        """Put through the key's publisher (declared on first use)."""
+        with self._publishing:
+            publisher = self._publishers.get(key)
+            if publisher is None:
+                publisher = self._session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+                self._publishers[key] = publisher
+            publisher.put(payload)
 
     def _drop_publisher(self, key: str) -> None:
-        publisher = self._publishers.pop(key, None)
-        if publisher is not None:
-            publisher.undeclare()
+        with self._publishing:
+            publisher = self._publishers.pop(key, None)
+            if publisher is not None:
+                publisher.undeclare()
 
 
 class RemoteObject:
@@ -473,7 +483,7 @@ class RemoteObject:
         self._client._check_worker(self.worker, self.name, self._life)
         key = self._client.keys.object_frame(self.name)
         try:
-            self._client._publisher(key).put(encode(frame))
+            self._client._put(key, encode(frame))
         except zenoh.ZError as error:
             raise WorkerUnavailableError(f"cannot stream to {self.name!r}: {zenoh_message(error)}") from None
         return frame.frame
@@ -607,11 +617,16 @@ def _worker_gone_error(worker: str, name: str | None, *, seen_going: bool, back:
     )
 
 
+# Zenoh takes timeouts in whole milliseconds of 64 bits, and Python's waits overflow long before that
+MAX_TIMEOUT_S = 1.0e6
+
+
 def _seconds(timeout: object) -> float:
-    """A timeout as float seconds: a positive finite number, else ValueError saying what came."""
+    """A timeout as float seconds: a positive number up to MAX_TIMEOUT_S, else ValueError saying what came
+    (1e300 was a raw Zenoh error with Rust source paths, 1e20 a "negative timeout")."""
     is_number = isinstance(timeout, (int, float, np.integer, np.floating)) and not isinstance(timeout, bool)
-    if not (is_number and math.isfinite(timeout) and timeout > 0):  # type: ignore[arg-type]
-        raise ValueError(f"timeout must be a positive finite number of seconds, got {timeout!r}")
+    if not (is_number and math.isfinite(timeout) and 0 < timeout <= MAX_TIMEOUT_S):  # type: ignore[operator]
+        raise ValueError(f"timeout must be a positive number of seconds up to {MAX_TIMEOUT_S:g}, got {timeout!r}")
     return float(timeout)  # type: ignore[arg-type]
 
 

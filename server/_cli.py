@@ -5,7 +5,6 @@ a router and one worker process per GPU."""
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 
 from badf.protocol import DEFAULT_ENDPOINT, BadfError
@@ -77,8 +76,9 @@ def router_settings_from(args: argparse.Namespace) -> RouterSettings:
     for given, flag in ((args.worker_id is not None, "--worker-id"), (args.mode != "router", "--mode")):
         if given:
             raise ValueError(f"{flag} does not apply to --router-only")
-    if not (math.isfinite(args.stats_interval) and args.stats_interval > 0):  # the router's own stats lines
-        raise ValueError(f"--stats-interval must be a positive finite number of seconds, got {args.stats_interval}")
+    if not (0.1 <= args.stats_interval <= 1e6):  # the router's own stats lines (nan fails too)
+        raise ValueError(f"--stats-interval must be a positive finite number of seconds in 0.1..1e6, "
+                         f"got {args.stats_interval}")
     return RouterSettings(
         namespace=args.namespace,
         listen=tuple(args.listen) if args.listen else None,

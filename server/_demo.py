@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import pathlib
-import signal
 import sys
 import time
 from contextlib import ExitStack
@@ -24,6 +23,7 @@ import numpy as np
 from badf.protocol import DEFAULT_ENDPOINT, DEFAULT_LIMITS, MAX_NAME_LENGTH, BadfError, InvalidOptionError, zenoh_config
 from badf.server._cuda import device_problem
 from badf.server._mesh_files import MeshFileError, read_frames, read_mesh
+from badf.server._signals import on_stop_signals
 
 # Depth when none is given: what keeps frames interactive on each kind of device.
 DEFAULT_DEPTH = {"cuda": 7, "cpu": 5}
@@ -118,8 +118,7 @@ def run(args: argparse.Namespace) -> int:
 class _StopFlag:
     def __init__(self) -> None:
         self.stopped = False
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(signum, self._stop)
+        on_stop_signals(self._stop)
 
     def _stop(self, _signum, _frame) -> None:
         self.stopped = True

@@ -11,7 +11,6 @@ import logging
 import multiprocessing
 import multiprocessing.connection
 import os
-import signal
 import socket
 import sys
 import threading
@@ -23,6 +22,7 @@ import zenoh
 
 from badf.protocol import InvalidOptionError, WorkerUnavailableError, zenoh_message
 from badf.server._router import RouterSettings, listen_endpoints, log_worker_changes
+from badf.server._signals import on_stop_signals
 from badf.server._worker import WorkerSettings, engine_field_builder, serve, warm_up_engine
 
 log = logging.getLogger("badf.server")
@@ -305,6 +305,5 @@ def _stop_on_signals() -> threading.Event:
             faulthandler.dump_traceback_later(SHUTDOWN_REPORT_AFTER_S, exit=False)
         stop.set()
 
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, on_signal)
+    on_stop_signals(on_signal)
     return stop

@@ -65,7 +65,10 @@ def test_demo_runs_frames_prints_stats_and_cleans_up(scene):
     _assert_nothing_left(process.pid)
 
 
-def test_ctrl_c_ends_the_demo_cleanly():
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGHUP], ids=["ctrl-c", "hangup"])
+def test_ctrl_c_ends_the_demo_cleanly(signum):
+    """SIGHUP (a closed terminal) ended the demo at once, leaving its worker and viewer running (outside
+    check 2026-11-22); it now ends it as Ctrl-C does."""
     process = _start("morph")
     lines = []
     deadline = time.monotonic() + DEMO_TIMEOUT_S
@@ -75,7 +78,7 @@ def test_ctrl_c_ends_the_demo_cleanly():
             if line.startswith("frame     3"):
                 break
             assert time.monotonic() < deadline, "no frames before the deadline"
-        os.kill(process.pid, signal.SIGINT)
+        os.kill(process.pid, signum)
         rest = _finish(process, 120)
     finally:
         if process.poll() is None:
