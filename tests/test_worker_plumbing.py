@@ -434,7 +434,7 @@ def test_closing_a_client_never_raises_zenohs_close_timeout(caplog) -> None:
             raise zenoh.ZError("close operation timed out! at /root/.cargo/zenoh/src/api/session.rs:1")
 
     client = Client.__new__(Client)  # no session of its own: only close() is under test
-    client._session, client._publishers = StuckSession(), {}
+    client._session, client._publishers, client._publishing = StuckSession(), {}, threading.Lock()
     client._liveliness = type("Subscriber", (), {"undeclare": lambda self: None})()
     with caplog.at_level("WARNING", logger="badf.client"):
         client.close()
