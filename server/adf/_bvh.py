@@ -383,14 +383,13 @@ def _winding_number_function(careful: bool):
     """The winding number's walk, taking each near triangle's solid angle from `solid_angle` or, `careful`,
     from `solid_angle_careful` (float64 where float32 cancels), whose extra registers the corners' winding
     kernel does without."""
+    angle = solid_angle_careful if careful else solid_angle
 
     def winding_number(bvh: BvhView, p: wp.vec3) -> float:
         """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018)."""
         if bvh.internal_count == 0:
             a, b, c = leaf_triangle(bvh, 0)  # a single triangle, and no tree
-            if wp.static(careful):
-                return solid_angle_careful(p, a, b, c) * _INV_FOUR_PI
-            return solid_angle(p, a, b, c) * _INV_FOUR_PI
+            return wp.static(angle)(p, a, b, c) * _INV_FOUR_PI
         nodes = stack_int()
         nodes[0] = 0
         count = int(1)
@@ -408,10 +407,8 @@ def _winding_number_function(careful: bool):
                     dist = wp.length(offset)
                     if dist > _FAR_FIELD * centre_radius[3]:
                         total += wp.dot(_xyz(normal_area), offset / dist) / (dist * dist)
-                    elif wp.static(careful):
-                        total += solid_angle_careful(p, a, b, c)
                     else:
-                        total += solid_angle(p, a, b, c)
+                        total += wp.static(angle)(p, a, b, c)
                 else:
                     centre_radius = load_vec4(bvh.node_moments, 4 * child)
                     offset = _xyz(centre_radius) - p

@@ -9,6 +9,8 @@ Conventions used across the engine:
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
 from badf.server.adf._tolerances import FEATURE_SNAP
@@ -342,16 +344,25 @@ def triangle_distance_sq(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> floa
 
 
 @wp.func
-def solid_angle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
-    """Signed solid angle of triangle (a, b, c) seen from p (Van Oosterom and Strackee 1983), in float32."""
+def _tangent_terms(p: Any, a: Any, b: Any, c: Any):
+    """The numerator and denominator of tan(omega / 2) for triangle (a, b, c) seen from p (Van Oosterom and
+    Strackee 1983), and the product of the three lengths from p, in the points' precision."""
     x = a - p
     y = b - p
     z = c - p
     lx = wp.length(x)
     ly = wp.length(y)
     lz = wp.length(z)
+    lengths = lx * ly * lz
     det = wp.dot(x, wp.cross(y, z))
-    denominator = lx * ly * lz + wp.dot(x, y) * lz + wp.dot(x, z) * ly + wp.dot(y, z) * lx
+    denominator = lengths + wp.dot(x, y) * lz + wp.dot(x, z) * ly + wp.dot(y, z) * lx
+    return det, denominator, lengths
+
+
+@wp.func
+def solid_angle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
+    """Signed solid angle of triangle (a, b, c) seen from p, in float32."""
+    det, denominator, _lengths = _tangent_terms(p, a, b, c)
     return 2.0 * wp.atan2(det, denominator)
 
 
@@ -366,30 +377,11 @@ def solid_angle_careful(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float
     """`solid_angle`, worked out again in float64 where float32 cancels: beside a needle 1e-4 of its length
     thick, the winding numbers of points just outside came out near 1 instead of 0. (The float64 path costs
     registers, so the corners' winding kernel keeps the plain one.)"""
-    x = a - p
-    y = b - p
-    z = c - p
-    lx = wp.length(x)
-    ly = wp.length(y)
-    lz = wp.length(z)
-    det = wp.dot(x, wp.cross(y, z))
-    denominator = lx * ly * lz + wp.dot(x, y) * lz + wp.dot(x, z) * ly + wp.dot(y, z) * lx
-    if wp.max(wp.abs(det), wp.abs(denominator)) < _HALF_SPHERE_CANCELLED * lx * ly * lz:
-        return float(_solid_angle_float64(wp.vec3d(p), wp.vec3d(a), wp.vec3d(b), wp.vec3d(c)))
+    det, denominator, lengths = _tangent_terms(p, a, b, c)
+    if wp.max(wp.abs(det), wp.abs(denominator)) < _HALF_SPHERE_CANCELLED * lengths:
+        det64, denominator64, _lengths64 = _tangent_terms(wp.vec3d(p), wp.vec3d(a), wp.vec3d(b), wp.vec3d(c))
+        return float(wp.float64(2.0) * wp.atan2(det64, denominator64))
     return 2.0 * wp.atan2(det, denominator)
-
-
-@wp.func
-def _solid_angle_float64(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d) -> wp.float64:
-    x = a - p
-    y = b - p
-    z = c - p
-    lx = wp.length(x)
-    ly = wp.length(y)
-    lz = wp.length(z)
-    det = wp.dot(x, wp.cross(y, z))
-    denominator = lx * ly * lz + wp.dot(x, y) * lz + wp.dot(x, z) * ly + wp.dot(y, z) * lx
-    return wp.float64(2.0) * wp.atan2(det, denominator)
 
 
 @wp.func
