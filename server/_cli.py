@@ -11,7 +11,7 @@ from badf.protocol import DEFAULT_ENDPOINT, BadfError
 from badf.server._cuda import NoCudaDeviceError, parse_gpus, requested_gpus, visible_cuda_device_count
 from badf.server._router import RouterSettings
 from badf.server._run import exit_now, run_gpu_workers, run_router, run_worker
-from badf.server._worker import WorkerSettings, default_worker_id
+from badf.server._worker import WorkerSettings, check_stats_interval, default_worker_id
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -76,9 +76,7 @@ def router_settings_from(args: argparse.Namespace) -> RouterSettings:
     for given, flag in ((args.worker_id is not None, "--worker-id"), (args.mode != "router", "--mode")):
         if given:
             raise ValueError(f"{flag} does not apply to --router-only")
-    if not (0.1 <= args.stats_interval <= 1e6):  # the router's own stats lines (nan fails too)
-        raise ValueError(f"--stats-interval must be a positive finite number of seconds in 0.1..1e6, "
-                         f"got {args.stats_interval}")
+    check_stats_interval(args.stats_interval, "--stats-interval")  # the router's own stats lines
     return RouterSettings(
         namespace=args.namespace,
         listen=tuple(args.listen) if args.listen else None,

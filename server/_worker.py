@@ -56,6 +56,13 @@ def default_worker_id() -> str:
     return re.sub(r"[^A-Za-z0-9_.\-]", "-", f"{socket.gethostname()}-{os.getpid()}")[:100]
 
 
+def check_stats_interval(seconds: float, name: str) -> None:
+    """ValueError unless the stats line's period is 0.1 to 1e6 seconds (nan and inf fail too): 1e-9 wrote
+    36,326 lines in 5 s, and 1e300 overflowed the clock."""
+    if not (0.1 <= seconds <= 1e6):
+        raise ValueError(f"{name} must be a positive finite number of seconds in 0.1..1e6, got {seconds}")
+
+
 @dataclass(frozen=True)
 class WorkerSettings:
     """Everything `badf serve` takes for one worker.
@@ -79,9 +86,7 @@ class WorkerSettings:
     def __post_init__(self) -> None:
         check_name(self.worker_id, what="worker id")
         KeySpace(self.namespace)
-        if not (0.1 <= self.stats_interval_s <= 1e6):  # nan and inf too; 1e-9 wrote 36,326 lines in 5 s
-            raise ValueError(f"stats_interval_s must be a positive finite number of seconds in 0.1..1e6, "
-                             f"got {self.stats_interval_s}")
+        check_stats_interval(self.stats_interval_s, "stats_interval_s")
         if self.max_waiting_requests < 1 or self.max_waiting_registrations < 1:
             raise ValueError("max_waiting_requests and max_waiting_registrations must be at least 1")
         self.zenoh_config()  # InvalidOptionError now, naming a malformed endpoint or config file
