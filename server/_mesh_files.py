@@ -2,8 +2,8 @@
 
 One reader for `badf demo` and every benchmark: an .npz with `vertices` (N, 3) or frames (T, N, 3) and
 `faces` (M, 3), or any mesh file trimesh reads (.obj, .ply, .stl, .off, .glb, ...). A file that cannot be
-read, or holds no triangles, is a `MeshFileError` naming the file and what was wrong; the command line
-prints it as one line. The engine checks values (NaN, face indices) when the mesh is registered.
+read, holds no triangles, has face indices out of range or vertices that are NaN or Inf, is a
+`MeshFileError` naming the file and what was wrong; the command line prints it as one line.
 """
 
 from __future__ import annotations
@@ -45,7 +45,15 @@ def read_frames(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
                             f"{frames.shape[1]} vertices")
     if not np.issubdtype(frames.dtype, np.number) or np.issubdtype(frames.dtype, np.complexfloating):
         raise MeshFileError(f"{path}: vertices of dtype {frames.dtype}, expected real numbers")
-    return np.ascontiguousarray(frames, np.float32), np.ascontiguousarray(faces, np.int32)
+    with np.errstate(over="ignore"):  # values past float32's range become inf, and are told below
+        frames = np.ascontiguousarray(frames, np.float32)
+    finite = np.isfinite(frames).all(axis=2)
+    if not finite.all():
+        frame, vertex = np.argwhere(~finite)[0]
+        where = f"vertex {vertex}" + (f" of frame {frame}" if frames.shape[0] > 1 else "")
+        raise MeshFileError(f"{path}: {where} is {frames[frame, vertex].tolist()} ({(~finite).sum()} vertices "
+                            f"are NaN, Inf or beyond float32's range)")
+    return frames, np.ascontiguousarray(faces, np.int32)
 
 
 def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:

@@ -50,6 +50,11 @@ def test_unreadable_files_are_named_with_what_is_wrong(box, tmp_path) -> None:
     np.savez(tmp_path / "past-the-end.npz", vertices=box.vertices[:4], faces=box.faces)
     np.savez(tmp_path / "flat.npz", vertices=box.vertices[:, :2], faces=box.faces)
     np.savez(tmp_path / "pickled.npz", vertices=np.array([object()], dtype=object), faces=box.faces)
+    with_nan = box.vertices.copy()
+    with_nan[5, 1] = np.nan
+    np.savez(tmp_path / "nan.npz", vertices=with_nan, faces=box.faces)
+    frames = np.stack([box.vertices, box.vertices * 1e39])  # past float32's range in the second frame
+    np.savez(tmp_path / "huge.npz", vertices=frames, faces=box.faces)
     cases = {
         tmp_path / "missing.obj": "no such file",
         tmp_path: "not a file",
@@ -60,6 +65,8 @@ def test_unreadable_files_are_named_with_what_is_wrong(box, tmp_path) -> None:
         tmp_path / "past-the-end.npz": "face indices span 0..7, but there are 4 vertices",
         tmp_path / "flat.npz": "expected (N, 3) or frames (T, N, 3)",
         tmp_path / "pickled.npz": "not a readable .npz",
+        tmp_path / "nan.npz": "vertex 5 is [",
+        tmp_path / "huge.npz": "vertex 0 of frame 1 is [",
     }
     for path, message in cases.items():
         with pytest.raises(MeshFileError, match=re.escape(message)) as raised:
