@@ -46,9 +46,18 @@ class RouterSettings:
 
 
 def listen_endpoints(config: zenoh.Config) -> list[str]:
-    """The endpoints a router configuration listens on, for the log."""
-    endpoints = json.loads(config.get_json("listen/endpoints"))
-    return endpoints.get("router", []) if isinstance(endpoints, dict) else endpoints
+    """The endpoints a configuration listens on, for the log."""
+    return configured_endpoints(config, "listen")
+
+
+def configured_endpoints(config: zenoh.Config, which: str) -> list[str]:
+    """The endpoints a configuration listens on (`which` = "listen") or connects to ("connect"), for its
+    mode where the file gives them per mode."""
+    endpoints = json.loads(config.get_json(f"{which}/endpoints"))
+    if not isinstance(endpoints, dict):
+        return list(endpoints or [])
+    mode = json.loads(config.get_json("mode")) or "peer"  # Zenoh's own default mode
+    return list(endpoints.get(mode, []))
 
 
 def log_worker_changes(session: zenoh.Session, namespace: str) -> zenoh.Subscriber:

@@ -21,7 +21,7 @@ from typing import Any, Callable, Iterator, Protocol, Sequence
 import zenoh
 
 from badf.protocol import InvalidOptionError, WorkerUnavailableError, zenoh_message
-from badf.server._router import RouterSettings, listen_endpoints, log_worker_changes
+from badf.server._router import RouterSettings, configured_endpoints, listen_endpoints, log_worker_changes
 from badf.server._signals import on_stop_signals
 from badf.server._worker import WorkerSettings, engine_field_builder, serve, warm_up_engine
 
@@ -52,7 +52,7 @@ def run_worker(settings: WorkerSettings, ready: _Settable | None = None) -> int:
     except ValueError as error:
         log.error("cannot use device %r: %s", settings.device, error)
         return 2
-    session = _open(settings.zenoh_config())
+    session = _open(settings.zenoh_config(), settings.config_file)
     if session is None:
         return 1
     with session:
@@ -82,7 +82,7 @@ def run_router(settings: RouterSettings, ready: _Settable | None = None) -> int:
     _configure_logging()
     stop = _stop_on_signals()
     config = settings.zenoh_config()
-    session = _open(config)
+    session = _open(config, settings.config_file)
     if session is None:
         return 1
     with session:
@@ -126,7 +126,7 @@ def run_workers(
     stop = _stop_on_signals()
     loopback = free_loopback_endpoint()
     config = router.zenoh_config(extra_listen=(loopback,))
-    session = _open(config)
+    session = _open(config, router.config_file)
     if session is None:
         return 1
     joined = [dataclasses.replace(w, mode="router", listen=(), connect=(loopback,)) for w in workers]
@@ -277,14 +277,28 @@ def free_loopback_endpoint() -> str:
         return f"tcp/127.0.0.1:{probe.getsockname()[1]}"
 
 
-def _open(config: zenoh.Config) -> zenoh.Session | None:
+def _open(config: zenoh.Config, config_file: str | None) -> zenoh.Session | None:
     zenoh.init_log_from_env_or("error")
     try:
         return zenoh.open(config)
     except zenoh.ZError as error:
-        log.error("cannot open the Zenoh session (is the port taken, or the config file wrong?): %s",
-                  zenoh_message(error))
+        log.error("cannot open the Zenoh session (%s): %s", _open_hint(config, config_file), zenoh_message(error))
         return None
+
+
+def _open_hint(config: zenoh.Config, config_file: str | None) -> str:
+    """What to look at when a session does not open, from what it was to listen on and connect to."""
+    listen, connect = configured_endpoints(config, "listen"), configured_endpoints(config, "connect")
+    hints = []
+    if listen:
+        hints.append(f"is a port of {', '.join(listen)} taken?")
+    if connect:
+        hints.append(f"is a router listening at {', '.join(connect)}?")
+    if not listen and not connect:
+        hints.append("it has nothing to listen on or connect to: give --listen or --connect")
+    if config_file is not None:
+        hints.append(f"is {config_file} right?")
+    return " ".join(hints)
 
 
 def _configure_logging() -> None:

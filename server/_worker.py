@@ -89,6 +89,13 @@ class WorkerSettings:
         check_stats_interval(self.stats_interval_s, "stats_interval_s")
         if self.max_waiting_requests < 1 or self.max_waiting_registrations < 1:
             raise ValueError("max_waiting_requests and max_waiting_registrations must be at least 1")
+        if self.mode == "client" and self.config_file is None:
+            if not self.connect:
+                raise ValueError("a worker in Zenoh's client mode is reached through a router: give the router "
+                                 "to connect to (--connect tcp/HOST:7447)")
+            if self.listen:
+                raise ValueError("a worker in Zenoh's client mode listens on nothing: leave out --listen, or use "
+                                 "--mode peer")
         self.zenoh_config()  # InvalidOptionError now, naming a malformed endpoint or config file
 
     def zenoh_config(self) -> zenoh.Config:

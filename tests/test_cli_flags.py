@@ -18,6 +18,10 @@ CASES = [
     (["serve", "--listen", "tcp/127.0.0.1:99999"], "names port 99999: a port is 0 to 65535"),
     (["serve", "--listen", "<free>", "--connect", "tcp/127.0.0.1:70000?iface=lo"], "names port 70000"),
     (["serve", "--listen", "<free>", "--config", "/nonexistent/badf.json5"], "cannot use the Zenoh config file"),
+    (["serve", "--mode", "client"], "give the router to connect to (--connect tcp/HOST:7447)"),
+    (["serve", "--mode", "client", "--connect", "<free>", "--listen", "<free>"], "client mode listens on nothing"),
+    (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--mesh", "<nan-vertex>"],
+     "nan.npz: vertex 2 is [0.0, nan, 0.0]"),
     (["view", "--connect", "notanendpoint"], "connect endpoint 'notanendpoint' is not a Zenoh endpoint"),
     (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--depth", "0"], "--depth must be in 1..10, got 0"),
     (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--depth", "11"], "--depth must be in 1..10, got 11"),
@@ -58,8 +62,10 @@ CASES = [
 def test_a_malformed_command_line_is_one_clear_line(args: list[str], message: str, tmp_path) -> None:
     (tmp_path / "not.npz").write_bytes(b"not a zip archive")
     np.savez(tmp_path / "no-faces.npz", vertices=np.zeros((3, 3), np.float32))
+    np.savez(tmp_path / "nan.npz", vertices=np.array([[0, 0, 0], [1, 0, 0], [0, np.nan, 0]], np.float32),
+             faces=np.array([[0, 1, 2]]))
     stand_ins = {"<free>": free_endpoint, "<not-npz>": lambda: str(tmp_path / "not.npz"),
-                 "<no-faces>": lambda: str(tmp_path / "no-faces.npz")}
+                 "<no-faces>": lambda: str(tmp_path / "no-faces.npz"), "<nan-vertex>": lambda: str(tmp_path / "nan.npz")}
     args = [stand_ins[arg]() if arg in stand_ins else arg for arg in args]
     done = subprocess.run([sys.executable, "-m", "badf.cli", *args], capture_output=True, text=True, timeout=120)
     lines = [line for line in done.stderr.splitlines() if not line.startswith(("Warp ", "   "))]
@@ -67,6 +73,17 @@ def test_a_malformed_command_line_is_one_clear_line(args: list[str], message: st
     assert message in done.stderr
     assert "Traceback" not in done.stderr, done.stderr
     assert len(lines) == 1, done.stderr
+
+
+def test_a_worker_that_cannot_reach_its_router_says_where_it_looked() -> None:
+    """A worker joining a router nobody runs was told "is the port taken?", which pointed at a port it
+    does not take; it now names the router it could not reach."""
+    nobody = free_endpoint()
+    done = subprocess.run([sys.executable, "-m", "badf.cli", "serve", "--device", "cpu", "--mode", "client",
+                           "--connect", nobody], capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 1, done.stderr
+    assert f"is a router listening at {nobody}?" in done.stderr
+    assert "taken" not in done.stderr
 
 
 def test_view_heeds_ctrl_c_while_it_waits_for_a_router() -> None:
