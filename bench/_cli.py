@@ -8,6 +8,7 @@ import math
 import pathlib
 import sys
 
+from badf.protocol import DEFAULT_LIMITS
 from badf.server._cuda import device_problem
 from badf.server._mesh_files import MeshFileError
 
@@ -54,6 +55,18 @@ _NOT_NEGATIVE = {"warm_up", "warmup"}
 _COMMA_LISTS = {"depths": _DEPTHS, "batches": _AT_LEAST_ONE, "clients": _AT_LEAST_ONE}
 
 
+def _largest_cube_grid() -> int:
+    """The finest `soak --grid` whose cube (6 (g+1)^2 vertices, 12 g^2 faces) a worker takes."""
+    grid = math.isqrt(DEFAULT_LIMITS.max_faces // 12)
+    while 6 * (grid + 1) ** 2 > DEFAULT_LIMITS.max_vertices:
+        grid -= 1
+    return grid
+
+
+# Sizes past what a worker takes in one message: the run would build them (minutes, gigabytes) to be refused.
+_AT_MOST = {"points": DEFAULT_LIMITS.max_points, "batches": DEFAULT_LIMITS.max_points, "grid": _largest_cube_grid()}
+
+
 def check_flags(flags: argparse.Namespace) -> None:
     """BenchFlagError naming the first flag whose value no run could use, before anything starts (a
     benchmark that fails after minutes, or that measures nothing and reports success, helps nobody)."""
@@ -77,6 +90,9 @@ def check_flags(flags: argparse.Namespace) -> None:
             raise BenchFlagError(f"{flag} must be in 1..{MAX_DEPTH}, got {value}")
         if rule & _AT_LEAST_ONE and not all(v >= 1 for v in values):
             raise BenchFlagError(f"{flag} must be at least 1, got {value}")
+        if dest in _AT_MOST and not all(v <= _AT_MOST[dest] for v in values):
+            raise BenchFlagError(f"{flag} must be at most {_AT_MOST[dest]:,} (what a worker takes in one message), "
+                                 f"got {value}")
         if rule & _POSITIVE_SECONDS and not (math.isfinite(value) and value > 0):
             raise BenchFlagError(f"{flag} must be a positive finite number, got {value}")
         if rule & _NOT_NEGATIVE and not (math.isfinite(value) and value >= 0):
