@@ -429,6 +429,7 @@ class RemoteObject:
         self.face_count = info.face_count
         self.options = info.options
         self._frame = info.frame
+        self._vertices_frame = info.frame  # the number of the frame whose vertices this handle keeps
         self._deleted = False  # set by delete(); a reregister() serves the object again
 
     def __repr__(self) -> str:
@@ -460,12 +461,12 @@ class RemoteObject:
         """Send (N, 3) vertices as the next frame and wait until the worker has applied it; returns its number.
         A frame that fails (refused, or its worker gone) uses up its number, but `vertices`, which a
         re-registration restores, stay the last ones before it."""
-        kept = self._vertices
+        kept = self._vertices, self._vertices_frame
         frame = self._next_frame(vertices)
         try:
             ack = self._ask(self._client.keys.object_frame(self.name), frame, FrameAck, timeout)
         except BadfError:
-            self._vertices = kept
+            self._vertices, self._vertices_frame = kept
             raise
         self._saw(ack.frame)
         return ack.frame
@@ -546,7 +547,8 @@ class RemoteObject:
 
     def reregister(self, *, worker: str | None = None, timeout: float | None = None) -> ObjectInfo:
         """Register the object again from what this handle kept: its faces, options and the last vertices it
-        sent, numbered as the last frame it sent (later frames keep counting up). Placed on `worker`, or on
+        sent, numbered as the frame that sent them, or, if a later number went out or was seen (an update
+        that failed or timed out), the next number (later frames keep counting up). Placed on `worker`, or on
         the least-loaded worker; the handle then points there. For an object whose worker is gone
         (ObjectUnavailableError). ObjectExistsError if the object is still served (by its worker, or
         registered again by another client: `Client.object(name)` finds it); NotSupportedError for a handle
@@ -556,7 +558,11 @@ class RemoteObject:
                 f"this handle on {self.name!r} came from Client.object and keeps no faces or vertices; "
                 "register the object with Client.register"
             )
-        request = RegisterRequest(self.name, self._vertices, self._faces, self.options, frame=self._frame)
+        # A frame number names one geometry: the kept vertices keep their frame's number, unless a later
+        # number went out (an update that failed or timed out, and may have been applied as the worker went)
+        # or came back from a reply; then they take a new one.
+        frame = self._frame if self._vertices_frame == self._frame else self._frame + 1
+        request = RegisterRequest(self.name, self._vertices, self._faces, self.options, frame=frame)
         info = self._client._register(request, worker=worker, timeout=timeout)
         self._adopt(info)
         return info
@@ -580,7 +586,7 @@ class RemoteObject:
                 f"{len(frame.vertices)} (if it was registered again since, with replace=True, take the new "
                 "handle, or Client.object(name))"
             )
-        self._frame = frame.frame
+        self._frame = self._vertices_frame = frame.frame
         self._vertices = _owned(frame.vertices, vertices)
         return frame
 

@@ -159,8 +159,28 @@ def test_a_refused_update_leaves_what_reregister_restores(client: Client) -> Non
     assert obj.frame == 2  # the refused frame used its number: later frames count on from it
     obj.delete()
     obj.reregister()
-    assert obj.query(np.zeros((1, 3), np.float32), mode="exact").frame == 2
+    assert obj.query(np.zeros((1, 3), np.float32), mode="exact").frame == 3  # frame 1's vertices, a new number
     np.testing.assert_array_equal(obj.mesh().vertices, good)
+
+
+def test_a_timed_out_update_and_reregister_never_give_two_geometries_one_frame_number(client: Client) -> None:
+    """An update that times out may still be applied. reregister() numbered the vertices it kept (the frame
+    before) as the last frame sent, so the worker had answered for frame 2 with one geometry and then with
+    another."""
+    vertices, faces = meshes.load("spot")
+    obj = client.register("cow", vertices, faces, depth=7)  # an update takes tens of milliseconds on a CPU
+    moved = vertices * np.float32(1.5)
+    with pytest.raises(WorkerTimeoutError):
+        obj.update(moved, timeout=0.002)  # sent, and applied, but not waited for
+    wait_until(lambda: obj.info().frame == 1, timeout=60, what="the timed-out frame applied")
+    seen = obj.mesh()
+    np.testing.assert_array_equal(seen.vertices, moved)
+    obj.delete()
+    obj.reregister()  # the vertices kept are frame 0's
+    again = obj.mesh()
+    np.testing.assert_array_equal(again.vertices, vertices)
+    assert again.frame != seen.frame, "one frame number named two geometries"
+    assert obj.update(moved) == again.frame + 1
 
 
 def test_slices_answer_like_the_engine(client: Client) -> None:
