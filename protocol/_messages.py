@@ -399,7 +399,9 @@ class RegisterRequest(_Message):
 
 @dataclass(frozen=True)
 class ObjectInfo(_Message):
-    """One object as its worker sees it. `frame` is the newest applied frame's number; `field_info` and
+    """One object as its worker sees it. `frame` is the newest applied frame's number; `registration`
+    numbers the object's registrations on its worker and changes when it is registered again (with
+    `replace`, or after a delete), so a watcher tells a new mesh from a new frame; `field_info` and
     `field_stats` are the engine's own reports (resolved options, timings in ms, device bytes)."""
 
     KIND: ClassVar[MessageKind] = MessageKind.OBJECT_INFO
@@ -414,13 +416,14 @@ class ObjectInfo(_Message):
     frames_rejected: int = 0
     queries_answered: int = 0
     points_answered: int = 0
+    registration: int = 0
     last_error: str | None = None
     field_info: dict[str, Any] = field(default_factory=dict)
     field_stats: dict[str, Any] = field(default_factory=dict)
 
     _COUNTERS: ClassVar[tuple[str, ...]] = (
         "frame", "vertex_count", "face_count", "frames_applied", "frames_dropped",
-        "frames_rejected", "queries_answered", "points_answered",
+        "frames_rejected", "queries_answered", "points_answered", "registration",
     )  # fmt: skip
 
     def __post_init__(self) -> None:

@@ -121,6 +121,7 @@ class ServedObject:
         vertices: np.ndarray,
         faces: np.ndarray,
         frame: int,
+        registration: int,
         worker_id: str,
         keys: KeySpace,
         limits: Limits,
@@ -134,6 +135,7 @@ class ServedObject:
         self._face_count = field.face_count
         self._options = options
         self._frame = frame
+        self._registration = registration  # the worker's number for this registration (see ObjectInfo)
         self._vertices = vertices  # of the newest applied frame, for mesh requests
         self._faces = faces
         self._keys = keys
@@ -245,6 +247,7 @@ class ServedObject:
                 frames_rejected=self._counters.frames_rejected,
                 queries_answered=self._counters.queries_answered,
                 points_answered=self._counters.points_answered,
+                registration=self._registration,
                 last_error=self._last_error,
                 field_info=self._field_info,
                 field_stats=self._field_stats,
@@ -460,16 +463,24 @@ class ServedObject:
         return Deleted(self.name, self._frame)
 
     def swap(
-        self, field: DistanceFieldLike, options: ObjectOptions, frame: int, vertices: np.ndarray, faces: np.ndarray
+        self,
+        field: DistanceFieldLike,
+        options: ObjectOptions,
+        frame: int,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        registration: int,
     ) -> ObjectInfo:
         """Replace the field (a re-registration), on the object's thread after the requests waiting before
-        it; blocks until done. A frame still pending for the old topology is dropped."""
+        it; blocks until done. A frame still pending for the old topology is dropped. Raises what closed
+        the object (ObjectNotFoundError once deleted) if it closed first."""
         done = threading.Event()
         failure: list[BadfError] = []
 
         def run() -> None:
             with self._lock:
                 self._field, self._options, self._frame = field, options, frame
+                self._registration = registration
                 self._vertices, self._faces = vertices, faces
                 self._vertex_count, self._face_count = field.vertex_count, field.face_count
                 self._replaced_counters += self._counters

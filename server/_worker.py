@@ -30,6 +30,7 @@ from badf.protocol import (
     Limits,
     ObjectExistsError,
     ObjectInfo,
+    ObjectNotFoundError,
     ObjectOptions,
     RegisterRequest,
     WorkerBusyError,
@@ -278,9 +279,15 @@ class Worker:
         with engine_errors():
             built = self._build_field(request.vertices, request.faces, request.options)
         build_ms = (time.perf_counter() - started) * 1000
+        registration = self._registered_total + 1  # numbers it among this worker's registrations; only
+        # this thread registers, so no other can take the number first
         if existing is not None:
-            info = existing.swap(built, request.options, request.frame, request.vertices, request.faces)
-        else:
+            try:
+                info = existing.swap(built, request.options, request.frame, request.vertices, request.faces,
+                                     registration)
+            except ObjectNotFoundError:  # deleted while the new field was built: replace=True creates it
+                existing = None
+        if existing is None:
             served = ServedObject(
                 request.name,
                 built,
@@ -288,6 +295,7 @@ class Worker:
                 vertices=request.vertices,
                 faces=request.faces,
                 frame=request.frame,
+                registration=registration,
                 worker_id=self.worker_id,
                 keys=self._keys,
                 limits=limits,

@@ -245,6 +245,25 @@ def test_the_viewer_switches_objects_and_outlives_a_deletion(served) -> None:
             client.object("ball").delete()
 
 
+def test_the_viewer_reopens_an_object_registered_again_with_the_same_counts(served) -> None:
+    """A replace with as many vertices and faces kept the old faces and depth on the page (the viewer
+    compared counts); it now reopens on any new registration, even one numbered below the frames seen."""
+    endpoint, client, _ = served
+    vertices, faces = meshes.load("sphere")
+    client.register("ball", vertices, faces, depth=4)
+    try:
+        settings = ViewerSettings(connect=endpoint, port=0, watch_without_browser=True, object_name="ball")
+        with Viewer(settings) as viewer:
+            wait_until(lambda: shows(viewer, "ball") and viewer.status().depth == 4, timeout=60, what="the ball")
+            client.register("ball", vertices[::-1].copy(), (len(vertices) - 1 - faces)[:, ::-1].copy(), depth=6,
+                            replace=True)  # the same triangles, the vertices numbered the other way
+            wait_until(lambda: viewer.status().depth == 6 and shows(viewer, "ball"), timeout=60,
+                       what="the ball at its new depth")  # fmt: skip
+    finally:
+        if "ball" in [info.name for info in client.objects()]:
+            client.object("ball").delete()
+
+
 def test_the_viewer_follows_an_object_to_the_worker_it_moves_to() -> None:
     """The shown object's worker leaves and a client registers the object again on another worker: the viewer
     used to keep its handle on the gone worker, showing ObjectUnavailableError until another object was picked."""

@@ -351,6 +351,42 @@ def test_replace_swaps_the_field_in_place(worker: ThreadWorker, client: Client) 
     assert new.update(VERTICES[:20] - 1) == 8
 
 
+class HeldBuildWorker(ThreadWorker):
+    """A ThreadWorker whose next build waits for `release` once `hold` is set (it sets `building`)."""
+
+    def __init__(self, endpoint: str, **kwargs) -> None:
+        super().__init__(endpoint, **kwargs)
+        self.hold, self.building, self.release = threading.Event(), threading.Event(), threading.Event()
+
+    def _build(self, vertices, faces, options) -> StandInField:
+        if self.hold.is_set():
+            self.building.set()
+            assert self.release.wait(30), "the test never released the build"
+        return super()._build(vertices, faces, options)
+
+
+def test_a_replace_racing_a_delete_leaves_the_new_object(endpoint: str) -> None:
+    """Another client deleted the object while a replace built its field: the replace failed with
+    ObjectNotFoundError and left no object. replace=True creates the object when it is gone."""
+    with HeldBuildWorker(endpoint) as worker, Client(endpoint, timeout=20) as client:
+        first = client.register("blob", VERTICES, FACES)
+        worker.hold.set()
+        outcome: list[object] = []
+        replacing = threading.Thread(target=lambda: outcome.append(
+            client.register("blob", VERTICES[:20], FACES[:2], replace=True, frame=3)))
+        replacing.start()
+        try:
+            assert worker.building.wait(20), "the replace never started building"
+            assert first.delete() == 0  # answered by the object's own thread while the registration builds
+        finally:
+            worker.release.set()
+            replacing.join(30)
+        assert len(outcome) == 1, "the replace raised"
+        info = client.object("blob").info()
+        assert (info.vertex_count, info.frame) == (20, 3)
+        assert info.registration == 2  # the worker's second registration
+
+
 def test_shutdown_answers_waiting_requests(endpoint: str) -> None:
     with ThreadWorker(endpoint) as worker, Client(endpoint, timeout=20) as client:
         obj = client.register("blob", VERTICES, FACES)

@@ -138,6 +138,7 @@ class ViewerStatus:
 
     object_name: str | None
     objects: tuple[str, ...]
+    depth: int | None  # the shown object's octree depth (the levels slider's range)
     known_frame: int  # the newest frame of the object heard of
     slice_frame: int | None
     slice_axis: str | None
@@ -294,6 +295,7 @@ class Viewer:
             return ViewerStatus(
                 object_name=None if shown is None else shown.remote.name,
                 objects=self._objects,
+                depth=None if shown is None else shown.depth,
                 known_frame=self._known_frame,
                 slice_frame=None if shown is None else shown.slice_frame,
                 slice_axis=None if view is None else view.axis,
@@ -447,8 +449,9 @@ class Viewer:
         if due.info <= now:
             self._count_requests()
             info = shown.remote.info()
-            if (info.vertex_count, info.face_count) != (shown.info.vertex_count, shown.info.face_count):
-                shown = self._open(chosen)  # re-registered with another mesh
+            if (info.worker, info.registration) != (shown.info.worker, shown.info.registration):
+                shown = self._open(chosen)  # registered again: its faces, depth and frame numbers may all differ
+                info = shown.info
             shown.info = info
             self._saw_frame(info.frame)
             due.info = now + 1 / settings.max_info_hz
