@@ -411,7 +411,9 @@ class RemoteObject:
     (faces and vertices are None for a handle from `Client.object`, which did not register it).
 
     Once its worker is gone (`available` turns False within milliseconds of the worker's liveliness token
-    going), every call raises ObjectUnavailableError; `reregister()` restores the object elsewhere."""
+    going), every call raises ObjectUnavailableError; `reregister()` restores the object elsewhere. If the
+    token comes back with the worker still serving the same registration (a router restart), calls work
+    again."""
 
     def __init__(
         self, client: Client, info: ObjectInfo, *, vertices: np.ndarray | None, faces: np.ndarray | None
@@ -428,6 +430,7 @@ class RemoteObject:
         self.vertex_count = info.vertex_count
         self.face_count = info.face_count
         self.options = info.options
+        self._registration = info.registration  # which registration of the name this handle is on
         self._frame = info.frame
         self._vertices_frame = info.frame  # the number of the frame whose vertices this handle keeps
         self._deleted = False  # set by delete(); a reregister() serves the object again
@@ -443,7 +446,8 @@ class RemoteObject:
     @property
     def available(self) -> bool:
         """False once this client has seen the object's worker go (its liveliness token), or was closed; no
-        round trip."""
+        round trip. If the worker comes back still serving the object (a router restart), the handle's
+        next call takes it up again, and this turns True."""
         return not self._client._session.is_closed() and not self._client._worker_gone(self.worker, self._life)
 
     @property
@@ -481,6 +485,7 @@ class RemoteObject:
         if self._deleted:
             raise ObjectNotFoundError(f"{self.name!r} was deleted through this handle; reregister() serves it again")
         frame = self._next_frame(vertices)
+        self._rejoin_if_back()
         self._client._check_worker(self.worker, self.name, self._life)
         key = self._client.keys.object_frame(self.name)
         try:
@@ -575,8 +580,26 @@ class RemoteObject:
         return deleted.frame
 
     def _ask(self, key: str, request: Message, expect: type[M], timeout: float | None) -> M:
+        self._rejoin_if_back()
         return self._client._ask(key, request, expect, timeout=timeout, worker=self.worker, name=self.name,
                                  life=self._life)
+
+    def _rejoin_if_back(self) -> None:
+        """Take the worker's new life when its token went and came back but the worker still serves this
+        registration of the object: a router restart, or a network cut, ends every token without ending a
+        worker. Left as it is otherwise (a worker restarted, the object registered again): the call then
+        raises ObjectUnavailableError."""
+        client = self._client
+        life = client._life(self.worker)
+        if life == self._life or client._worker_gone(self.worker):
+            return
+        try:
+            info = client._ask(client.keys.object_info(self.name), InfoRequest(self.name), ObjectInfo,
+                               timeout=None, worker=self.worker, name=self.name, life=life)  # fmt: skip
+        except BadfError:
+            return
+        if info.worker == self.worker and info.registration == self._registration:
+            self._life = life
 
     def _next_frame(self, vertices: np.ndarray) -> Frame:
         frame = Frame(self.name, self._frame + 1, vertices)

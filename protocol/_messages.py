@@ -400,8 +400,9 @@ class RegisterRequest(_Message):
 @dataclass(frozen=True)
 class ObjectInfo(_Message):
     """One object as its worker sees it. `frame` is the newest applied frame's number; `registration`
-    numbers the object's registrations on its worker and changes when it is registered again (with
-    `replace`, or after a delete), so a watcher tells a new mesh from a new frame; `field_info` and
+    is drawn at random for each registration and changes when the object is registered again (with
+    `replace`, after a delete, or on a worker that restarted), so a watcher tells a new mesh from a new
+    frame, and a handle tells its object from another of the same name; `field_info` and
     `field_stats` are the engine's own reports (resolved options, timings in ms, device bytes)."""
 
     KIND: ClassVar[MessageKind] = MessageKind.OBJECT_INFO

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import os
 import re
+import secrets
 import socket
 import threading
 import time
@@ -279,8 +280,7 @@ class Worker:
         with engine_errors():
             built = self._build_field(request.vertices, request.faces, request.options)
         build_ms = (time.perf_counter() - started) * 1000
-        registration = self._registered_total + 1  # numbers it among this worker's registrations; only
-        # this thread registers, so no other can take the number first
+        registration = secrets.randbits(62)  # tells this registration from any other, in any worker's life
         if existing is not None:
             try:
                 info = existing.swap(built, request.options, request.frame, request.vertices, request.faces,

@@ -8,6 +8,7 @@ import os
 import signal
 import threading
 import time
+from contextlib import ExitStack
 
 import meshes
 import numpy as np
@@ -20,6 +21,7 @@ from test_worker_plumbing import FACES, POINTS, VERTICES, ThreadWorker, expected
 from badf.client import Client
 from badf.protocol import (
     DEFAULT_LIMITS,
+    BadfError,
     InfoRequest,
     KeySpace,
     NotSupportedError,
@@ -408,6 +410,37 @@ def test_a_router_with_worker_processes_behind_it(endpoint: str) -> None:
         parent.join(60)
         assert parent.exitcode == 0
         assert not first.available and not second.available
+
+
+def test_handles_work_again_when_a_restarted_router_brings_their_worker_back(endpoint: str) -> None:
+    """A router restart ends every worker's liveliness token, and the tokens come back with the router; the
+    worker keeps its objects. Handles stayed unusable (ObjectUnavailableError) though `Client.object(name)`
+    found the object; a handle now takes up the worker's new life when the same registration answers."""
+    with ExitStack() as stack:
+        router = stack.enter_context(router_process(RouterSettings(listen=(endpoint,))))
+        stack.enter_context(ThreadWorker("", worker_id="kept", mode="client", connect=(endpoint,)))
+        client = stack.enter_context(Client(endpoint, timeout=20))
+        wait_until(lambda: [w.worker for w in client.workers()] == ["kept"], what="the worker behind the router")
+        handle = client.register("blob", VERTICES, FACES)
+        assert handle.update(VERTICES + 1) == 1
+        os.kill(router.pid, signal.SIGKILL)  # the process this test started
+        router.join(30)
+        wait_until(lambda: not handle.available, what="the client to see the worker's token go")
+        with pytest.raises(ObjectUnavailableError):
+            handle.query(POINTS)
+        with router_process(RouterSettings(listen=(endpoint,))):
+            wait_until(lambda: _lists(client, "blob"), timeout=60, what="the worker and the client to reconnect")
+            result = handle.query(POINTS)
+            assert result.frame == 1 and handle.available
+            np.testing.assert_allclose(result.distance, expected_distance(POINTS, VERTICES + 1), rtol=1e-6)
+            assert handle.update(VERTICES + 2) == 2
+
+
+def _lists(client: Client, name: str) -> bool:
+    try:
+        return name in [info.name for info in client.objects(timeout=2)]
+    except BadfError:
+        return False
 
 
 def test_a_worker_that_cannot_start_stops_the_router_with_its_status(endpoint: str) -> None:
