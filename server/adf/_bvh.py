@@ -36,8 +36,8 @@ from badf.server.adf._geometry import (
     load_vec4,
     morton3,
     quantize,
-    solid_angle,
     solid_angle_careful,
+    solid_angle_checked,
     stack_float,
     stack_int,
     thread_fence,
@@ -380,20 +380,25 @@ def _far_field(bvh: BvhView, node: int, u: wp.vec3, dist: float) -> float:
 
 
 def _winding_number_function(careful: bool):
-    """The winding number's walk, taking each near triangle's solid angle from `solid_angle` or, `careful`,
-    from `solid_angle_careful` (float64 where float32 cancels), whose extra registers the corners' winding
-    kernel does without."""
-    angle = solid_angle_careful if careful else solid_angle
+    """The winding number's walk; returns (w, whether a near triangle's float32 solid angle cancelled, so
+    that w may be wrong). `careful`: such solid angles are worked out in float64 (`solid_angle_careful`),
+    and none is left cancelled; otherwise float32 throughout, whose registers the corners' winding kernel
+    can afford."""
 
-    def winding_number(bvh: BvhView, p: wp.vec3) -> float:
+    def winding_number(bvh: BvhView, p: wp.vec3):
         """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018)."""
+        total = float(0.0)
+        cancelled = bool(False)
         if bvh.internal_count == 0:
             a, b, c = leaf_triangle(bvh, 0)  # a single triangle, and no tree
-            return wp.static(angle)(p, a, b, c) * _INV_FOUR_PI
+            if wp.static(careful):
+                total = solid_angle_careful(p, a, b, c)
+            else:
+                total, cancelled = solid_angle_checked(p, a, b, c)
+            return total * _INV_FOUR_PI, cancelled
         nodes = stack_int()
         nodes[0] = 0
         count = int(1)
-        total = float(0.0)
         while count > 0:
             count -= 1
             slot = 2 * nodes[count]
@@ -407,8 +412,12 @@ def _winding_number_function(careful: bool):
                     dist = wp.length(offset)
                     if dist > _FAR_FIELD * centre_radius[3]:
                         total += wp.dot(_xyz(normal_area), offset / dist) / (dist * dist)
+                    elif wp.static(careful):
+                        total += solid_angle_careful(p, a, b, c)
                     else:
-                        total += wp.static(angle)(p, a, b, c)
+                        angle, near_cancelled = solid_angle_checked(p, a, b, c)
+                        total += angle
+                        cancelled = cancelled or near_cancelled
                 else:
                     centre_radius = load_vec4(bvh.node_moments, 4 * child)
                     offset = _xyz(centre_radius) - p
@@ -418,13 +427,14 @@ def _winding_number_function(careful: bool):
                     else:
                         nodes[count] = child
                         count += 1
-        return total * _INV_FOUR_PI
+        return total * _INV_FOUR_PI, cancelled
 
     winding_number.__name__ = winding_number.__qualname__ = "winding_number_careful" if careful else "winding_number"
     return wp.func(winding_number)
 
 
-# the corners' (fast: float32 throughout) and everything else's (queries, the overlap check, orientation)
+# the corners' (float32 throughout, telling where it cancelled) and everything else's (queries, the overlap
+# check, orientation)
 winding_number = _winding_number_function(False)
 winding_number_careful = _winding_number_function(True)
 

@@ -37,12 +37,14 @@ from badf.server.adf._octree import OctreeView, leaf_corner, locate
 from badf.server.adf._sign import (
     SIGN_PSEUDONORMAL,
     SIGN_WINDING,
+    WOUND_CANCELLED,
+    WOUND_INSIDE,
     SignView,
     feature_normal,
     inside_by_pseudonormal,
     inside_by_winding,
-    inside_by_winding_careful,
     lends_no_normal,
+    wound_side,
 )
 from badf.server.adf._tolerances import SURFACE_SNAP
 
@@ -527,7 +529,9 @@ def _winds_inward(bvh: BvhView, leaf: int, inv_side: float) -> bool:
         return False
     centre = (a + b + c) / 3.0
     step = n * (_SIDE_STEP / (inv_side * length))
-    return wp.abs(winding_number_careful(bvh, centre + step)) > wp.abs(winding_number_careful(bvh, centre - step))
+    ahead, _cancelled_ahead = winding_number_careful(bvh, centre + step)
+    behind, _cancelled_behind = winding_number_careful(bvh, centre - step)
+    return wp.abs(ahead) > wp.abs(behind)
 
 
 @wp.func
@@ -783,7 +787,10 @@ def _make_sign_kernel(method: int) -> wp.Kernel:
                 else:
                     inside = inside_by_winding(bvh, p)
             if wp.static(winding):
-                inside = inside_by_winding_number[i] != wp.uint8(0)
+                side = inside_by_winding_number[i]
+                inside = side == WOUND_INSIDE
+                if side == WOUND_CANCELLED:
+                    inside = inside_by_winding(bvh, p)
             if inside:
                 value[i] = -value[i]
 
@@ -792,7 +799,9 @@ def _make_sign_kernel(method: int) -> wp.Kernel:
 
 
 def winding_kernel() -> wp.Kernel:
-    """Whether each corner is inside by its winding number. It needs only the corners and the refitted BVH,
+    """Whether each corner is inside by its winding number (`wound_side`: corners where float32 cancelled are
+    worked out again in float64 by the sign kernel, whose few registers do not hold up the searches). It
+    needs only the corners and the refitted BVH,
     not the searches' nearest faces, so on CUDA it runs on a stream of its own beside them and fills the SMs
     that the searches' longest walks leave idle."""
     key = ("winding", SIGN_WINDING)
@@ -814,8 +823,7 @@ def _make_winding_kernel() -> wp.Kernel:
         i = wp.tid()
         if i >= wp.min(count[0], capacity):
             return
-        p = _lattice_point(corner_keys[i], origin, cell)
-        inside[i] = wp.where(inside_by_winding(bvh, p), wp.uint8(1), wp.uint8(0))
+        inside[i] = wound_side(bvh, _lattice_point(corner_keys[i], origin, cell))
 
     return wp.kernel(sign_corners_by_winding, name="sign_corners_by_winding", enable_backward=False, module="unique",
                      cuda_max_registers=SIGN_MAX_REGISTERS)
@@ -965,10 +973,10 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         if leaf < 0:
             inside = False
             if wp.static(winding):
-                inside = inside_by_winding_careful(bvh, p)
+                inside = inside_by_winding(bvh, p)
             if wp.static(pseudonormal):
                 if in_domain:
-                    inside = inside_by_winding_careful(bvh, p)
+                    inside = inside_by_winding(bvh, p)
             if outputs & _OUT_DISTANCE:
                 out_distance[i] = wp.where(inside, -band, band)
             if outputs & _OUT_NORMAL:
@@ -985,7 +993,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         d = wp.sqrt(best_sq)
         inside = False
         if wp.static(winding):
-            inside = inside_by_winding_careful(bvh, p)
+            inside = inside_by_winding(bvh, p)
         if wp.static(pseudonormal):
             if in_domain:
                 inside = inside_by_pseudonormal(sign, bvh, p, face, closest, feature)

@@ -359,13 +359,6 @@ def _tangent_terms(p: Any, a: Any, b: Any, c: Any):
     return det, denominator, lengths
 
 
-@wp.func
-def solid_angle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
-    """Signed solid angle of triangle (a, b, c) seen from p, in float32."""
-    det, denominator, _lengths = _tangent_terms(p, a, b, c)
-    return 2.0 * wp.atan2(det, denominator)
-
-
 # Where both terms of a solid angle's tangent are below this fraction of the product of the three lengths,
 # float32 has cancelled most of their digits (a point beside a long thin triangle, near the line of an edge,
 # sees it as about a half-sphere)
@@ -373,15 +366,23 @@ _HALF_SPHERE_CANCELLED = wp.constant(1.0e-3)
 
 
 @wp.func
-def solid_angle_careful(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
-    """`solid_angle`, worked out again in float64 where float32 cancels: beside a needle 1e-4 of its length
-    thick, the winding numbers of points just outside came out near 1 instead of 0. (The float64 path costs
-    registers, so the corners' winding kernel keeps the plain one.)"""
+def solid_angle_checked(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """Signed solid angle of triangle (a, b, c) seen from p, in float32, and whether float32 cancelled most of
+    its digits (then `solid_angle_careful` is right, and this may not be)."""
     det, denominator, lengths = _tangent_terms(p, a, b, c)
-    if wp.max(wp.abs(det), wp.abs(denominator)) < _HALF_SPHERE_CANCELLED * lengths:
+    cancelled = wp.max(wp.abs(det), wp.abs(denominator)) < _HALF_SPHERE_CANCELLED * lengths
+    return 2.0 * wp.atan2(det, denominator), cancelled
+
+
+@wp.func
+def solid_angle_careful(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
+    """The solid angle, worked out again in float64 where float32 cancels: beside a needle 1e-4 of its length
+    thick, the winding numbers of points just outside came out near 1 instead of 0."""
+    angle, cancelled = solid_angle_checked(p, a, b, c)
+    if cancelled:
         det64, denominator64, _lengths64 = _tangent_terms(wp.vec3d(p), wp.vec3d(a), wp.vec3d(b), wp.vec3d(c))
         return float(wp.float64(2.0) * wp.atan2(det64, denominator64))
-    return 2.0 * wp.atan2(det, denominator)
+    return angle
 
 
 @wp.func

@@ -434,16 +434,28 @@ def feature_normal(sign: SignView, face: int, feature: int) -> wp.vec3:
     return sign.edge_normal[sign.face_edge[face][feature - EDGE_AB]]
 
 
+# What the corners' winding kernel finds of each corner: outside, inside, or a float32 solid angle cancelled
+# (a point beside a triangle far longer than it is wide), to be worked out again by `inside_by_winding`
+WOUND_OUTSIDE = wp.constant(wp.uint8(0))
+WOUND_INSIDE = wp.constant(wp.uint8(1))
+WOUND_CANCELLED = wp.constant(wp.uint8(2))
+
+
+@wp.func
+def wound_side(bvh: BvhView, p: wp.vec3) -> wp.uint8:
+    """WOUND_INSIDE, WOUND_OUTSIDE or WOUND_CANCELLED: the side by float32 winding numbers, unless they cancelled."""
+    w, cancelled = winding_number(bvh, p)
+    if cancelled:
+        return WOUND_CANCELLED
+    return wp.where(wp.abs(w) > 0.5, WOUND_INSIDE, WOUND_OUTSIDE)
+
+
 @wp.func
 def inside_by_winding(bvh: BvhView, p: wp.vec3) -> bool:
-    """|w| > 1/2, so an inside-out mesh gives the same answer as the right way round."""
-    return wp.abs(winding_number(bvh, p)) > 0.5
-
-
-@wp.func
-def inside_by_winding_careful(bvh: BvhView, p: wp.vec3) -> bool:
-    """`inside_by_winding` with float64 solid angles where float32 cancels (for queries, not the corners)."""
-    return wp.abs(winding_number_careful(bvh, p)) > 0.5
+    """|w| > 1/2, so an inside-out mesh gives the same answer as the right way round; solid angles in float64
+    where float32 cancels (the corners' kernel takes `wound_side` instead, and this only where it cancelled)."""
+    w, _cancelled = winding_number_careful(bvh, p)
+    return wp.abs(w) > 0.5
 
 
 @wp.func
@@ -480,7 +492,7 @@ def _solid_beside_face(bvh: BvhView, vertices: wp.array(dtype=wp.vec3), faces: w
         return  # no direction to step in
     w = _beside_weights(slot % _POINTS_PER_FACE)
     beside = w[0] * a + w[1] * b + w[2] * c + n * (_BESIDE_REACH * extent[0] / length)
-    if wp.abs(winding_number_careful(bvh, beside)) > 0.5:  # a false alarm signs a thin solid wrongly
+    if inside_by_winding(bvh, beside):  # a false alarm signs a thin solid wrongly
         found[0] = 1
 
 
