@@ -94,7 +94,7 @@ class Client:
         if not isinstance(limits, Limits):
             raise InvalidOptionError(f"limits must be a badf.protocol.Limits, got {limits!r}")
         self.keys = KeySpace(namespace)
-        self.timeout = _seconds(timeout)
+        self.timeout = timeout_seconds(timeout)
         self.limits = limits
         config = zenoh_config(
             mode="client", connect=endpoints, config_file=config_file, connect_timeout_s=self.timeout
@@ -285,7 +285,7 @@ class Client:
         fan_out: bool = False,
         cancellation: zenoh.CancellationToken | None = None,
     ) -> zenoh.Handler:
-        seconds = self.timeout if timeout is None else _seconds(timeout)
+        seconds = self.timeout if timeout is None else timeout_seconds(timeout)
         try:
             return self._session.get(
                 key,
@@ -650,12 +650,13 @@ def _worker_gone_error(worker: str, name: str | None, *, seen_going: bool, back:
 MAX_TIMEOUT_S = 1.0e6
 
 
-def _seconds(timeout: object) -> float:
-    """A timeout as float seconds: a positive number up to MAX_TIMEOUT_S, else ValueError saying what came
-    (1e300 was a raw Zenoh error with Rust source paths, 1e20 a "negative timeout")."""
+def timeout_seconds(timeout: object) -> float:
+    """A timeout as float seconds: a positive number up to MAX_TIMEOUT_S, else InvalidOptionError (a
+    ValueError and a BadfError) saying what came (1e300 was a raw Zenoh error with Rust source paths, 1e20 a
+    "negative timeout")."""
     is_number = isinstance(timeout, (int, float, np.integer, np.floating)) and not isinstance(timeout, bool)
     if not (is_number and math.isfinite(timeout) and 0 < timeout <= MAX_TIMEOUT_S):  # type: ignore[operator]
-        raise ValueError(f"timeout must be a positive number of seconds up to {MAX_TIMEOUT_S:g}, got {timeout!r}")
+        raise InvalidOptionError(f"timeout must be a positive number of seconds up to {MAX_TIMEOUT_S:g}, got {timeout!r}")
     return float(timeout)  # type: ignore[arg-type]
 
 

@@ -48,7 +48,7 @@ QUERY_MODES: tuple[str, ...] = get_args(QueryMode)
 QUERY_OUTPUTS: tuple[str, ...] = get_args(QueryOutput)
 AXES: tuple[str, ...] = get_args(Axis)
 # Sanity bounds checked on decode; the engine enforces its own, narrower ranges (RejectedInputError).
-MAX_DEPTH = 30
+MAX_DEPTH = 10  # the engine's deepest octree (badf.server.adf), so a client is told the range that works
 MAX_HALO = 8
 MAX_ERROR_MESSAGE_LENGTH = 4000
 # Bits of SliceReply.cell_flags.
@@ -248,12 +248,17 @@ def _short(value: object) -> str:
     return text if len(text) <= 80 else text[:77] + "..."
 
 
-def _check_int(owner: str, name: str, value: object, *, minimum: int = 0, maximum: int | None = None) -> int:
+# Integers on the wire (frame numbers, counters) fit a signed 64-bit integer, as clients in other languages
+# hold them
+MAX_WIRE_INT = 2**63 - 1
+
+
+def _check_int(owner: str, name: str, value: object, *, minimum: int = 0, maximum: int = MAX_WIRE_INT) -> int:
     if not isinstance(value, (int, np.integer)) or isinstance(value, bool):
         raise InvalidOptionError(f"{owner}.{name} must be an integer, got {_short(value)}")
-    if value < minimum or (maximum is not None and value > maximum):
-        bounds = f">= {minimum}" if maximum is None else f"between {minimum} and {maximum}"
-        raise InvalidOptionError(f"{owner}.{name} must be {bounds}, got {value}")
+    if value < minimum or value > maximum:
+        given = str(value) if abs(value) < 10**30 else f"an integer of {int(value).bit_length()} bits"
+        raise InvalidOptionError(f"{owner}.{name} must be between {minimum} and {maximum}, got {given}")
     return int(value)
 
 

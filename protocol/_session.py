@@ -70,6 +70,11 @@ def _endpoints_json(endpoints: Sequence[str], role: str) -> str:
                 f"{role} endpoint {endpoint!r} is not a Zenoh endpoint: expected PROTOCOL/ADDRESS, "
                 f"for instance {DEFAULT_ENDPOINT}"
             ) from None
+        if endpoint.partition("/")[0].lower() in _LOSSY_PROTOCOLS:
+            raise InvalidOptionError(
+                f"{role} endpoint {endpoint!r}: Zenoh's UDP links may drop messages, and badf's requests and "
+                "frames must not be lost; use tcp/, tls/ or quic/"
+            )
         port = _port_of(endpoint)
         if port is not None and not 0 <= port <= 65535:
             raise InvalidOptionError(f"{role} endpoint {endpoint!r} names port {port}: a port is 0 to 65535")
@@ -77,6 +82,7 @@ def _endpoints_json(endpoints: Sequence[str], role: str) -> str:
 
 
 _IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+_LOSSY_PROTOCOLS = ("udp",)  # best effort: a request or a registration sent on it can vanish without a word
 
 
 def _port_of(endpoint: str) -> int | None:

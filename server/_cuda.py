@@ -97,5 +97,6 @@ def device_problem(device: str) -> str | None:
     try:
         wp.get_device(device)
     except (RuntimeError, ValueError, KeyError) as error:
-        return f"--device {device!r} is not a device here ({error}); try cpu or cuda:0"
+        here = ", ".join(d.alias for d in wp.get_devices())
+        return f"--device {device!r} is not a device here ({error}); the devices here: {here}"
     return None

@@ -2,8 +2,9 @@
 
 One reader for `badf demo` and every benchmark: an .npz with `vertices` (N, 3) or frames (T, N, 3) and
 `faces` (M, 3), or any mesh file trimesh reads (.obj, .ply, .stl, .off, .glb, ...). A file that cannot be
-read, holds no triangles, has face indices out of range or vertices that are NaN or Inf, is a
-`MeshFileError` naming the file and what was wrong; the command line prints it as one line.
+read, holds no triangles, has face indices out of range or vertices that are NaN or Inf, or that the
+engine would refuse (coordinates past its range, a first frame of zero extent), is a `MeshFileError`
+naming the file and what was wrong; the command line prints it as one line.
 """
 
 from __future__ import annotations
@@ -53,7 +54,22 @@ def read_frames(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         where = f"vertex {vertex}" + (f" of frame {frame}" if frames.shape[0] > 1 else "")
         raise MeshFileError(f"{path}: {where} is {frames[frame, vertex].tolist()} ({(~finite).sum()} vertices "
                             f"are NaN, Inf or beyond float32's range)")
+    _check_engine_takes(path, frames, faces)
     return frames, np.ascontiguousarray(faces, np.int32)
+
+
+def _check_engine_takes(path: pathlib.Path, frames: np.ndarray, faces: np.ndarray) -> None:
+    """What the engine would refuse at registration, told now with the file's name (a demo started its
+    worker, then failed naming no file)."""
+    from badf.server.adf._inputs import MAX_COORDINATE
+
+    largest = float(np.abs(frames).max())
+    if largest > MAX_COORDINATE:
+        raise MeshFileError(f"{path}: a coordinate of {largest:g}; the engine takes coordinates within "
+                            f"+-{MAX_COORDINATE:g}")
+    used = frames[0][np.unique(faces)]
+    if float(np.max(used.max(axis=0) - used.min(axis=0))) == 0.0:
+        raise MeshFileError(f"{path}: the vertices its faces use all coincide (the mesh has zero extent)")
 
 
 def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:

@@ -101,7 +101,7 @@ def float_rows(rows: st.SearchStrategy[int], columns: int = 3) -> st.SearchStrat
 @st.composite
 def object_options(draw) -> ObjectOptions:
     return ObjectOptions(
-        depth=draw(st.integers(1, 30)),
+        depth=draw(st.integers(1, 10)),
         sign=draw(st.sampled_from(SIGN_METHODS)),
         band=draw(st.none() | st.floats(1e-6, 1e6)),
         coherence=draw(st.booleans()),
@@ -154,7 +154,7 @@ def query_replies(draw) -> QueryReply:
 
 @st.composite
 def slice_requests(draw) -> SliceRequest:
-    levels = draw(st.none() | st.tuples(st.integers(0, 30), st.integers(0, 30)).map(sorted).map(tuple))
+    levels = draw(st.none() | st.tuples(st.integers(0, 10), st.integers(0, 10)).map(sorted).map(tuple))
     return SliceRequest(
         draw(names), draw(st.sampled_from(AXES)), draw(finite), resolution=draw(st.integers(1, 32)), levels=levels,
         cells=draw(st.booleans()), corners=draw(st.booleans()),

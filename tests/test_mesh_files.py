@@ -55,6 +55,8 @@ def test_unreadable_files_are_named_with_what_is_wrong(box, tmp_path) -> None:
     np.savez(tmp_path / "nan.npz", vertices=with_nan, faces=box.faces)
     frames = np.stack([box.vertices, box.vertices * 1e39])  # past float32's range in the second frame
     np.savez(tmp_path / "huge.npz", vertices=frames, faces=box.faces)
+    np.savez(tmp_path / "far.npz", vertices=box.vertices + 1e19, faces=box.faces)  # past the engine's 1e18
+    np.savez(tmp_path / "point.npz", vertices=np.zeros((3, 3)), faces=[[0, 1, 2]])
     cases = {
         tmp_path / "missing.obj": "no such file",
         tmp_path: "not a file",
@@ -67,6 +69,8 @@ def test_unreadable_files_are_named_with_what_is_wrong(box, tmp_path) -> None:
         tmp_path / "pickled.npz": "not a readable .npz",
         tmp_path / "nan.npz": "vertex 5 is [",
         tmp_path / "huge.npz": "vertex 0 of frame 1 is [",
+        tmp_path / "far.npz": "a coordinate of 1e+19; the engine takes coordinates within +-1e+18",
+        tmp_path / "point.npz": "the vertices its faces use all coincide",
     }
     for path, message in cases.items():
         with pytest.raises(MeshFileError, match=re.escape(message)) as raised:

@@ -403,6 +403,26 @@ def test_a_malformed_endpoint_or_config_file_is_named() -> None:
     with pytest.raises(InvalidOptionError, match="connect endpoint 'garbage'"):
         Client("garbage")  # before any session is opened
     zenoh_config(mode="client", connect=["tcp/127.0.0.1:7447", "tcp/[::1]:7447"])  # well-formed ones pass
+    # UDP links may drop messages: a request or a registration sent on one vanished (outside check)
+    with pytest.raises(InvalidOptionError, match="UDP links may drop messages"):
+        zenoh_config(mode="router", listen=["udp/127.0.0.1:7447"])
+    with pytest.raises(InvalidOptionError, match="use tcp/, tls/ or quic/"):
+        Client("UDP/127.0.0.1:7447")
+
+
+def test_integers_on_the_wire_are_bounded_and_told_by_name() -> None:
+    """frame=10**5000 was refused as 'metadata is not finite JSON: Exceeds the limit (4300 digits) for
+    integer string conversion', naming neither the field nor its range; 2**64 was taken, which clients in
+    other languages cannot hold; depth 11 passed the client, and depth 0 was told a range of 1 to 30."""
+    with pytest.raises(InvalidOptionError, match="RegisterRequest.frame must be between 0 and 9223372036854775807, "
+                                                 "got an integer of 16610 bits"):
+        RegisterRequest("a", VERTICES, FACES, frame=10**5000)
+    with pytest.raises(InvalidOptionError, match="Frame.frame must be between 0 and 9223372036854775807"):
+        Frame("a", 2**63, VERTICES)
+    assert Frame("a", 2**63 - 1, VERTICES).frame == 2**63 - 1
+    for depth in (0, 11):
+        with pytest.raises(InvalidOptionError, match=f"depth must be between 1 and 10, got {depth}"):
+            ObjectOptions(depth=depth)
 
 
 def test_key_space() -> None:

@@ -365,7 +365,7 @@ def test_bad_input_is_answered_and_changes_nothing(client: Client, shared_endpoi
         (register_key, bad_faces, IndexRangeError),
         (
             register_key,
-            encode(RegisterRequest("cow3", vertices, faces, options=ObjectOptions(depth=11))),
+            encode(RegisterRequest("cow3", vertices, faces, options=ObjectOptions(halo=5))),  # the engine's: 0..2
             RejectedInputError,
         ),
         (query_key, encode(QueryRequest("cow", np.zeros((5_000_000, 3), np.float32))), LimitExceededError),

@@ -492,9 +492,9 @@ def test_timeouts_are_positive_finite_seconds(client: Client, timeout) -> None:
     with pytest.raises(ValueError, match=message):
         Client(free_endpoint(), timeout=timeout)
     obj = client.register("blob", VERTICES, FACES)
-    with pytest.raises(ValueError, match=message):
+    with pytest.raises(InvalidOptionError, match=message):  # a BadfError too, as other bad options are
         obj.query(POINTS, timeout=timeout)
-    with pytest.raises(ValueError, match=message):
+    with pytest.raises(InvalidOptionError, match=message):
         client.workers(timeout=timeout)
 
 

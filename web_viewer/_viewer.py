@@ -24,10 +24,12 @@ from typing import Any, Literal
 import numpy as np
 
 from badf.client import Client, RemoteObject
+from badf.client._client import timeout_seconds
 from badf.protocol import (
     AXES,
     DEFAULT_ENDPOINT,
     BadfError,
+    KeySpace,
     ObjectInfo,
     ObjectNotFoundError,
     ObjectUnavailableError,
@@ -106,11 +108,13 @@ class ViewerSettings:
             raise ValueError(f"resolution must be one of {', '.join(map(str, RESOLUTIONS))}, got {self.resolution!r}")
         if self.up not in UP_DIRECTIONS:
             raise ValueError(f"up must be one of {', '.join(UP_DIRECTIONS)}, got {self.up!r}")
-        for name in ("max_slice_hz", "max_mesh_hz", "max_info_hz", "timeout_s"):
+        for name in ("max_slice_hz", "max_mesh_hz", "max_info_hz"):
             value = getattr(self, name)
             is_number = isinstance(value, (int, float)) and not isinstance(value, bool)
             if not (is_number and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a finite positive number, got {value!r}")
+        timeout_seconds(self.timeout_s)  # as the client takes it, so a bad one is told before connecting
+        KeySpace(self.namespace)
         if self.object_name is not None:
             check_name(self.object_name)
         connect = [self.connect] if isinstance(self.connect, str) else list(self.connect)
