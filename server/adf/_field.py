@@ -304,7 +304,7 @@ class DistanceField:
             self._parts_overlap = False
             if self._sign_requested == "auto" and self._sign == "pseudonormal":
                 self._parts_overlap = surface_enters_solid(
-                    self._bvh.view(), self._vertices, self._faces,
+                    self._bvh.view(), self._normals.view(), self._vertices, self._faces,
                     beside_points(spread_sample(parts, SOLID_BESIDE_SAMPLE), len(f)),
                     self._normals.extent, self._device)
                 if not self._parts_overlap:

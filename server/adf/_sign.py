@@ -15,9 +15,26 @@ import numpy as np
 import warp as wp
 
 from badf.server.adf._buffers import DeviceBuffers
-from badf.server.adf._bvh import BvhView, winding_number, winding_number_careful
-from badf.server.adf._geometry import EDGE_AB, EDGE_BC, FACE, VERTEX_A, VERTEX_B, VERTEX_C
-from badf.server.adf._tolerances import DEGENERATE_AREA, MIN_ENCLOSED_VOLUME, SOLID_BESIDE_REACH
+from badf.server.adf._bvh import LEAF_SIZE, BvhView, leaf_triangle, winding_number, winding_number_careful
+from badf.server.adf._geometry import (
+    EDGE_AB,
+    EDGE_BC,
+    FACE,
+    VERTEX_A,
+    VERTEX_B,
+    VERTEX_C,
+    box_distance_sq,
+    closest_point_on_triangle,
+    load_vec4,
+    stack_int,
+    triangle_distance_sq,
+)
+from badf.server.adf._tolerances import (
+    CANCELLED_PSEUDONORMAL,
+    DEGENERATE_AREA,
+    MIN_ENCLOSED_VOLUME,
+    SOLID_BESIDE_REACH,
+)
 
 SignMethod = Literal["auto", "pseudonormal", "winding", "none"]
 SIGN_METHODS: tuple[str, ...] = ("auto", "pseudonormal", "winding", "none")
@@ -28,6 +45,10 @@ SIGN_PSEUDONORMAL = 1
 SIGN_WINDING = 2
 _SIGN_CODES = {"none": SIGN_NONE, "pseudonormal": SIGN_PSEUDONORMAL, "winding": SIGN_WINDING}
 _DEGENERATE = wp.constant(DEGENERATE_AREA)
+_CANCELLED = wp.constant(CANCELLED_PSEUDONORMAL)
+# A face counts as "as near as" a point's own face within this factor of the distance, squared (1 + 1e-3)^2:
+# past float32's rounding of it, well short of another face's (see _reads_inside_by_a_face_within)
+_NEAR_TIE_SQ = wp.constant(1.002001)
 _MIN_ENCLOSED = wp.constant(MIN_ENCLOSED_VOLUME)
 _BESIDE_REACH = wp.constant(SOLID_BESIDE_REACH)
 # Points per face that beside_points may look beside (the centroid and six more), and the face count up to
@@ -238,7 +259,7 @@ def beside_points(faces: np.ndarray, face_count: int) -> np.ndarray:
     return (faces[:, None] * POINTS_PER_FACE + np.arange(POINTS_PER_FACE)).reshape(-1).astype(np.int32)
 
 
-def surface_enters_solid(bvh: BvhView, vertices: wp.array, faces: wp.array, sample: np.ndarray,
+def surface_enters_solid(bvh: BvhView, sign: SignView, vertices: wp.array, faces: wp.array, sample: np.ndarray,
                          extent: wp.array, device) -> bool:
     """Whether any sampled point (`beside_points` of a `spread_sample` of faces) of a closed, outward-facing
     mesh has the solid just outside it: SOLID_BESIDE_REACH of the mesh's `extent` (a (1,) device array) off
@@ -247,12 +268,15 @@ def surface_enters_solid(bvh: BvhView, vertices: wp.array, faces: wp.array, samp
     That is the case where parts are nested (a shell inside a shell facing the same way) or run into each
     other or themselves. Pseudonormals then say "outside" between the inner surface and the outer one,
     where the winding number says inside; so `auto` takes winding numbers. On a mesh without that, every
-    such point has a winding number near 0. (`Pseudonormals.watch_parts` repeats the check every frame.)
+    such point has a winding number near 0. Also true where such a point reads inside by the pseudonormal of
+    a face as near as its own (`sign`: this frame's): faces that coincide facing both ways, as in a flap
+    pressed flat, which a search meets in either order. (`Pseudonormals.watch_parts` repeats the check every
+    frame.)
     """
     faces_of = wp.array(sample, dtype=wp.int32, device=device)
     start = wp.zeros(1, dtype=wp.int32, device=device)
     found = wp.zeros(1, dtype=wp.int32, device=device)
-    wp.launch(_solid_beside_face, dim=len(sample), inputs=[bvh, vertices, faces, faces_of, start, extent],
+    wp.launch(_solid_beside_face, dim=len(sample), inputs=[bvh, sign, vertices, faces, faces_of, start, extent],
               outputs=[found], device=device)
     return bool(found.numpy()[0])
 
@@ -395,7 +419,8 @@ class Pseudonormals:
             self.parts_overlap.zero_()
             if self._watched is not None:
                 wp.launch(_solid_beside_face, dim=self.watch_per_frame,
-                          inputs=[bvh, vertices, self.faces, self._watched, self._window_start, self.extent],
+                          inputs=[bvh, self.view(), vertices, self.faces, self._watched, self._window_start,
+                                  self.extent],
                           outputs=[self.parts_overlap], device=self.device)
                 wp.launch(_advance_window, dim=1, inputs=[self._window_start, self.watch_per_frame, len(self._watched)],
                           device=self.device)
@@ -478,8 +503,45 @@ def lends_no_normal(a: wp.vec3, b: wp.vec3, c: wp.vec3, cross_length: float) -> 
     return cross_length <= _DEGENERATE * longest_sq or cross_length == 0.0
 
 
+@wp.func
+def _leaves_read_inside(bvh: BvhView, sign: SignView, p: wp.vec3, first: int, count: int, reach_sq: float) -> bool:
+    for leaf in range(first, first + count):
+        a, b, c = leaf_triangle(bvh, leaf)
+        if triangle_distance_sq(p, a, b, c) <= reach_sq:
+            closest, feature = closest_point_on_triangle(p, a, b, c)
+            if wp.dot(p - closest, feature_normal(sign, bvh.leaf_face[leaf], feature)) < 0.0:
+                return True
+    return False
+
+
+@wp.func
+def _reads_inside_by_a_face_within(bvh: BvhView, sign: SignView, p: wp.vec3, reach_sq: float) -> bool:
+    """Whether p lies on the inner side of the pseudonormal of its closest feature on any face within
+    sqrt(reach_sq) of it (not only the nearest face, which a tie between coincident faces leaves to chance)."""
+    if bvh.internal_count == 0:
+        return _leaves_read_inside(bvh, sign, p, 0, 1, reach_sq)  # a single triangle, and no tree
+    nodes = stack_int()
+    nodes[0] = 0
+    count = int(1)
+    while count > 0:
+        count -= 1
+        slot = 2 * nodes[count]
+        for side in range(2):
+            lower = load_vec4(bvh.slot_lower, slot + side)
+            upper = load_vec4(bvh.slot_upper, slot + side)
+            if box_distance_sq(p, wp.vec3(lower[0], lower[1], lower[2]), wp.vec3(upper[0], upper[1], upper[2])) <= reach_sq:
+                if lower[3] <= float(LEAF_SIZE):
+                    if _leaves_read_inside(bvh, sign, p, bvh.slot_first[slot + side], bvh.slot_count[slot + side],
+                                           reach_sq):
+                        return True
+                else:
+                    nodes[count] = bvh.slot_child[slot + side]
+                    count += 1
+    return False
+
+
 @wp.kernel(enable_backward=False)
-def _solid_beside_face(bvh: BvhView, vertices: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.vec3i),
+def _solid_beside_face(bvh: BvhView, sign: SignView, vertices: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.vec3i),
                        slots: wp.array(dtype=wp.int32), start: wp.array(dtype=wp.int32),
                        extent: wp.array(dtype=wp.float32), found: wp.array(dtype=wp.int32)):
     """The point slots[(start + i) mod len] for this launch's i (see surface_enters_solid, beside_points)."""
@@ -491,8 +553,13 @@ def _solid_beside_face(bvh: BvhView, vertices: wp.array(dtype=wp.vec3), faces: w
     if lends_no_normal(a, b, c, length):
         return  # no direction to step in
     w = _beside_weights(slot % _POINTS_PER_FACE)
-    beside = w[0] * a + w[1] * b + w[2] * c + n * (_BESIDE_REACH * extent[0] / length)
+    reach = _BESIDE_REACH * extent[0]
+    beside = w[0] * a + w[1] * b + w[2] * c + n * (reach / length)
     if inside_by_winding(bvh, beside):  # a false alarm signs a thin solid wrongly
+        found[0] = 1
+    elif _reads_inside_by_a_face_within(bvh, sign, beside, reach * reach * _NEAR_TIE_SQ):
+        # outside, but a face as near as its own (a flap pressed flat: faces coincide, facing both ways)
+        # reads it inside: which one a search meets first is chance, so pseudonormals cannot sign this frame
         found[0] = 1
 
 
@@ -561,9 +628,12 @@ def _face_normals(
 
 
 @wp.func
-def _unit_or_zero(v: wp.vec3) -> wp.vec3:
+def _unit_or_zero(v: wp.vec3, weight: float, whole: bool) -> wp.vec3:
+    """v, a sum of unit normals with this total weight, as a unit vector; zero where it has cancelled, or is
+    not `whole` (a face around the feature lends no normal, so the sum leaves out one side of it: beside a
+    sliver spanning a flap's rim, an edge's normal came from the face across the rim alone)."""
     length = wp.length(v)
-    if length > 0.0:
+    if whole and length > _CANCELLED * weight:
         return v / length
     return wp.vec3(0.0)
 
@@ -578,11 +648,16 @@ def _vertex_normals(
 ):
     v = wp.tid()
     total = wp.vec3(0.0)
+    weight = float(0.0)
+    whole = bool(True)
     for i in range(corner_start[v], corner_start[v + 1]):
         slot = corners[i]
         face = slot // 3
-        total += face_angles[face][slot - 3 * face] * face_normal[face]
-    vertex_normal[v] = _unit_or_zero(total)
+        angle = face_angles[face][slot - 3 * face]
+        total += angle * face_normal[face]
+        weight += angle
+        whole = whole and wp.length_sq(face_normal[face]) > 0.0
+    vertex_normal[v] = _unit_or_zero(total, weight, whole)
 
 
 @wp.kernel(enable_backward=False)
@@ -594,6 +669,9 @@ def _edge_normals(
 ):
     e = wp.tid()
     total = wp.vec3(0.0)
+    whole = bool(True)
     for i in range(face_start[e], face_start[e + 1]):
-        total += face_normal[faces_of_edge[i]]
-    edge_normal[e] = _unit_or_zero(total)
+        n = face_normal[faces_of_edge[i]]
+        total += n
+        whole = whole and wp.length_sq(n) > 0.0
+    edge_normal[e] = _unit_or_zero(total, float(face_start[e + 1] - face_start[e]), whole)

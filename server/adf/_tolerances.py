@@ -27,6 +27,13 @@ FEATURE_SNAP = 1.0e-5
 # pure rounding, 70 degrees off on the surface (outside check, 2026-11-22).
 DEGENERATE_AREA = 1.0e-5
 
+# A vertex's or edge's pseudonormal whose weighted sum of unit face normals is shorter than this fraction of
+# its weights (angles, or the face count) has cancelled: faces nearly folded onto each other (the rim of a
+# flap a millionth of the mesh's size thick). float32 leaves its direction to rounding, which signed points a
+# tenth of the mesh's size away wrongly (outside check, 2026-11-22); such a feature lends no normal, and the
+# winding number signs the points nearest it.
+CANCELLED_PSEUDONORMAL = 1.0e-4
+
 # The BVH's leaf boxes are grown by this much on every side (local units, where the domain's side is 0.7 to
 # 1.4; about 16 float32 ulps of the coordinates). A box's rounded distance from a point could otherwise come
 # out a few ulps above its triangle's, so a search could prune a triangle nearer than its bound, and its
