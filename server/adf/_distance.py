@@ -949,7 +949,11 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 # are asked for, so a distance does not depend on them)
                 weak = length < _WEAK_GRADIENT and not beyond and not flat
                 clear = scale > 1 or farthest > diagonal or nearest > 0.5 * diagonal
-                if not (has_inside and has_outside and clear) and not weak:
+                # every corner of a finest leaf clamped at the band says nothing of the surface, which may
+                # still cross the leaf between them (a band narrower than a cell: an unsigned field read
+                # points on its sheet as beyond the band): such a point is answered exactly
+                clamped_finest = flat and scale == 1
+                if not (has_inside and has_outside and clear) and not weak and not clamped_finest:
                     if outputs & _OUT_DISTANCE:
                         out_distance[i] = value
                     if outputs & _OUT_NORMAL:
