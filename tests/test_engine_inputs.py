@@ -21,6 +21,10 @@ VERTICES, FACES = meshes.single_triangle()
         ({"vertices": np.zeros((0, 3))}, "vertices must not be empty"),
         ({"vertices": np.zeros((3, 3))}, "zero extent"),
         ({"vertices": np.array([[0, 0, 0], [1e19, 0, 0], [0, 1, 0]])}, r"within \+-1e\+18"),
+        # a long double past float64's range was told as NaN or Inf, with numpy's overflow warning
+        pytest.param({"vertices": np.array([[0, 0, 0], [np.longdouble("1e400"), 0, 0], [0, 1, 0]], np.longdouble)},
+                     r"within \+-1e\+18, got a coordinate of 1.e\+400",
+                     marks=pytest.mark.skipif(np.finfo(np.longdouble).max < 1e300, reason="long double is float64 here")),
         ({"faces": np.array([[0, 1, 3]])}, r"faces must index vertices 0..2, got indices in \[0, 3\]"),
         ({"faces": np.array([[0, 1, -1]])}, "first at row 0"),
         ({"faces": np.zeros((0, 3), int)}, "faces must not be empty"),

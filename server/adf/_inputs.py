@@ -44,8 +44,9 @@ def _check_finite(arr: np.ndarray, name: str) -> None:
         raise InvalidInputError(
             f"{name} must be finite, got {int(bad.sum())} NaN or Inf values in {len(rows)} rows (first at row {rows[0]})"
         )
-    big = float(np.abs(arr).max())
-    raise InvalidInputError(f"{name} must lie within +-{MAX_COORDINATE:g}, got a coordinate of {big:g}")
+    big = np.abs(arr).max()
+    told = f"{float(big):g}" if np.isfinite(float(big)) else np.format_float_scientific(big, precision=4)  # long double
+    raise InvalidInputError(f"{name} must lie within +-{MAX_COORDINATE:g}, got a coordinate of {told}")
 
 
 def as_points(value, name: str = "points", *, expected_count: int | None = None, allow_empty: bool = True) -> np.ndarray:
@@ -59,6 +60,8 @@ def as_points(value, name: str = "points", *, expected_count: int | None = None,
         )
     if not allow_empty and arr.shape[0] == 0:
         raise InvalidInputError(f"{name} must not be empty")
+    if arr.dtype.kind == "f" and arr.dtype.itemsize > 8:
+        _check_finite(arr, name)  # before float64, which would make 1e400 an Inf and tell it as one
     if arr.dtype.kind != "f" or arr.dtype.itemsize > 8:
         arr = arr.astype(np.float64)
     elif arr.dtype.itemsize < 4:
