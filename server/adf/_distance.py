@@ -26,6 +26,7 @@ from badf.server.adf._bvh import (
 from badf.server.adf._geometry import (
     atomic_min_packed,
     closest_point_on_triangle,
+    feature_on_surface,
     morton3,
     morton3_decode,
     pack_distance_leaf,
@@ -1015,7 +1016,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
             else:
                 oriented = leaf
                 if wp.static(pseudonormal):
-                    n = feature_normal(sign, face, feature)
+                    n = feature_normal(sign, face, feature_on_surface(closest, a, b, c, feature))
                 if wp.length_sq(n) == 0.0:
                     n, oriented = _surface_normal(tree, corner_leaf, node, octant, bvh, p, leaf)
                 by_winding = wp.static(winding)

@@ -297,6 +297,35 @@ def closest_point_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
 
 
 @wp.func
+def feature_on_surface(q: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, feature: int) -> int:
+    """The feature of triangle (a, b, c) that q, a point on it, lies on: `feature`, or for FACE, the edge or
+    vertex within FEATURE_SNAP (barycentric) of it. A point on an edge projects inside both faces (the
+    projection test counts the boundary in), so on the surface FACE alone would name either face."""
+    if feature != FACE:
+        return feature
+    n = wp.cross(b - a, c - a)
+    n_sq = wp.dot(n, n)
+    if n_sq == 0.0:
+        return feature
+    at_a = wp.dot(wp.cross(c - b, q - b), n) / n_sq  # barycentric weights of q
+    at_b = wp.dot(wp.cross(a - c, q - c), n) / n_sq
+    at_c = wp.dot(wp.cross(b - a, q - a), n) / n_sq
+    if at_b <= _SNAP and at_c <= _SNAP:
+        return VERTEX_A
+    if at_c <= _SNAP and at_a <= _SNAP:
+        return VERTEX_B
+    if at_a <= _SNAP and at_b <= _SNAP:
+        return VERTEX_C
+    if at_c <= _SNAP:
+        return EDGE_AB
+    if at_a <= _SNAP:
+        return EDGE_BC
+    if at_b <= _SNAP:
+        return EDGE_CA
+    return feature
+
+
+@wp.func
 def triangle_distance_sq(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
     """Squared distance from p to triangle (a, b, c): what the searches compare, so it is kept short.
 
