@@ -45,11 +45,6 @@ class RouterSettings:
         return config
 
 
-def listen_endpoints(config: zenoh.Config) -> list[str]:
-    """The endpoints a configuration listens on, for the log."""
-    return configured_endpoints(config, "listen")
-
-
 def configured_endpoints(config: zenoh.Config, which: str) -> list[str]:
     """The endpoints a configuration listens on (`which` = "listen") or connects to ("connect"), for its
     mode where the file gives them per mode."""

@@ -21,7 +21,7 @@ from typing import Any, Callable, Iterator, Protocol, Sequence
 import zenoh
 
 from badf.protocol import InvalidOptionError, WorkerUnavailableError, zenoh_message
-from badf.server._router import RouterSettings, configured_endpoints, listen_endpoints, log_worker_changes
+from badf.server._router import RouterSettings, configured_endpoints, log_worker_changes
 from badf.server._signals import on_stop_signals
 from badf.server._worker import WorkerSettings, engine_field_builder, serve, warm_up_engine
 
@@ -87,7 +87,7 @@ def run_router(settings: RouterSettings, ready: _Settable | None = None) -> int:
         return 1
     with session:
         watcher = log_worker_changes(session, settings.namespace)
-        log.info("router listening on %s", ", ".join(listen_endpoints(config)) or "no endpoint")
+        log.info("router listening on %s", ", ".join(configured_endpoints(config, "listen")) or "no endpoint")
         if ready is not None:
             ready.set()
         stop.wait()
@@ -132,7 +132,7 @@ def run_workers(
     joined = [dataclasses.replace(w, mode="router", listen=(), connect=(loopback,)) for w in workers]
     with session:
         watcher = log_worker_changes(session, router.namespace)
-        log.info("router listening on %s", ", ".join(listen_endpoints(config)))
+        log.info("router listening on %s", ", ".join(configured_endpoints(config, "listen")))
         status = _supervise(joined, stop, ready, start_timeout_s)
         watcher.undeclare()
     log.info("router stopped")
