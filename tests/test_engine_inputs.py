@@ -20,6 +20,8 @@ VERTICES, FACES = meshes.single_triangle()
         ({"vertices": np.array([["a", "b", "c"]] * 3)}, "must hold numbers"),
         ({"vertices": np.zeros((0, 3))}, "vertices must not be empty"),
         ({"vertices": np.zeros((3, 3))}, "zero extent"),
+        # the faces use one vertex of a spread mesh: the message names the faces' vertices, not all of them
+        ({"vertices": np.eye(3), "faces": np.zeros((1, 3), np.int32)}, "the vertices the faces use must not"),
         ({"vertices": np.array([[0, 0, 0], [1e19, 0, 0], [0, 1, 0]])}, r"within \+-1e\+18"),
         # a long double past float64's range was told as NaN or Inf, with numpy's overflow warning
         pytest.param({"vertices": np.array([[0, 0, 0], [np.longdouble("1e400"), 0, 0], [0, 1, 0]], np.longdouble)},

@@ -22,7 +22,7 @@ def persistent(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.i
                previous_count: wp.array(dtype=wp.int32), previous_capacity: int, previous_origin: wp.vec3,
                previous_inv_cell: float, budget: int, next_item: wp.array(dtype=int),
                distance: wp.array(dtype=float), nearest: wp.array(dtype=int), long_count: wp.array(dtype=int),
-               long_corner: wp.array(dtype=int), long_bound: wp.array(dtype=float), long_best: wp.array(dtype=wp.int64)):
+               long_corner: wp.array(dtype=int), long_start: wp.array(dtype=wp.int64), long_best: wp.array(dtype=wp.int64)):
     n = wp.min(count[0], capacity)
     i = wp.atomic_add(next_item, 0, 1)
     while i < n:
@@ -33,7 +33,7 @@ def persistent(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.i
         distance[i] = wp.sqrt(best_sq)
         nearest[i] = best_leaf
         if not finished:
-            D.list_long_search(i, best_sq, best_leaf, capacity, long_count, long_corner, long_bound, long_best)
+            D.list_long_search(i, best_sq, best_leaf, capacity, long_count, long_corner, long_start, long_best)
         i = wp.atomic_add(next_item, 0, 1)
 
 
@@ -41,7 +41,7 @@ def persistent(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.i
 def split_pairs(corner_keys: wp.array(dtype=wp.int64), origin: wp.vec3, cell: float, bvh: BvhView,
                 cut: wp.array(dtype=wp.int32), levels: int, next_pair: wp.array(dtype=int),
                 long_count: wp.array(dtype=wp.int32), long_corner: wp.array(dtype=wp.int32),
-                long_bound: wp.array(dtype=wp.float32), long_best: wp.array(dtype=wp.int64)):
+                long_start: wp.array(dtype=wp.int64), long_best: wp.array(dtype=wp.int64)):
     """Persistent threads over (long corner, cut subtree) pairs, taken one at a time from a shared counter:
     consecutive pairs share a corner, so a warp walks 32 subtrees around one point."""
     total = long_count[0] << levels
@@ -51,8 +51,9 @@ def split_pairs(corner_keys: wp.array(dtype=wp.int64), origin: wp.vec3, cell: fl
         slot = cut[k - (item << levels)]
         if slot >= 0:
             p = D._lattice_point(corner_keys[long_corner[item]], origin, cell)
-            leaf, leaf_sq = D.nearest_in_slot(bvh, p, slot, -1, long_bound[item])
-            if leaf >= 0:
+            start_leaf = D.packed_leaf(long_start[item])
+            leaf, leaf_sq = D.nearest_in_slot(bvh, p, slot, start_leaf, D.packed_distance_sq(long_start[item]))
+            if leaf != start_leaf:
                 D.atomic_min_packed(long_best, item, pack_distance_leaf(leaf_sq, leaf))
         k = wp.atomic_add(next_pair, 0, 1)
 
@@ -62,7 +63,7 @@ field, inputs, n, truth = captured_search(sys.argv[1], DEV)
 cap, cell = inputs[2], inputs[4]
 keys, origin, bvh = inputs[0], inputs[3], inputs[7]
 z = lambda dt: wp.zeros(cap, dtype=dt, device=DEV)
-dist, near, lc, lb, lbest = z(float), z(int), z(int), z(float), z(wp.int64)
+dist, near, lc, lb, lbest = z(float), z(int), z(int), z(wp.int64), z(wp.int64)
 lcount = wp.zeros(1, dtype=int, device=DEV)
 counter = wp.zeros(1, dtype=int, device=DEV)
 unseeded = wp.zeros(1, dtype=int, device=DEV)

@@ -20,7 +20,7 @@ def searches(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int
              previous_count: wp.array(dtype=wp.int32), previous_capacity: int, previous_origin: wp.vec3,
              previous_inv_cell: float, budget: int, far: wp.array(dtype=int),
              distance: wp.array(dtype=float), nearest: wp.array(dtype=int), long_count: wp.array(dtype=int),
-             long_corner: wp.array(dtype=int), long_bound: wp.array(dtype=float), long_best: wp.array(dtype=wp.int64)):
+             long_corner: wp.array(dtype=int), long_start: wp.array(dtype=wp.int64), long_best: wp.array(dtype=wp.int64)):
     i = wp.tid()
     if i >= wp.min(count[0], capacity):
         return
@@ -34,7 +34,7 @@ def searches(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int
     distance[i] = wp.sqrt(best_sq)
     nearest[i] = best_leaf
     if not finished:
-        D.list_long_search(i, best_sq, best_leaf, capacity, long_count, long_corner, long_bound, long_best)
+        D.list_long_search(i, best_sq, best_leaf, capacity, long_count, long_corner, long_start, long_best)
 
 DEV = sys.argv[2] if len(sys.argv) > 2 else "cuda:0"
 field, inputs, n, truth = captured_search(sys.argv[1], DEV)
@@ -42,7 +42,7 @@ cap, cell = inputs[2], inputs[4]
 keys, origin, bvh = inputs[0], inputs[3], inputs[7]
 cells = truth / cell
 z = lambda dt: wp.zeros(cap, dtype=dt, device=DEV)
-dist, near, lc, lb, lbest = z(float), z(int), z(int), z(float), z(wp.int64)
+dist, near, lc, lb, lbest = z(float), z(int), z(int), z(wp.int64), z(wp.int64)
 lcount = wp.zeros(1, dtype=int, device=DEV)
 far = z(int)
 rows = []

@@ -247,11 +247,21 @@ def _xyz(v: wp.vec4) -> wp.vec3:
 
 
 @wp.func
+def beats(d_sq: float, leaf: int, best_sq: float, best_leaf: int) -> bool:
+    """Whether `leaf` at squared distance d_sq beats the best so far: nearer, or as near with a lower index.
+    Faces tie wherever a feature they share is nearest (off a convex mesh's vertices and edges, a whole
+    region of space ties), so ties go to the lowest leaf, and which face a search reports does not depend on
+    the bound it started from (coherence, a corner's faces). A best_leaf of -1 (nothing within the band)
+    takes no tie."""
+    return d_sq < best_sq or (d_sq == best_sq and leaf < best_leaf)
+
+
+@wp.func
 def _nearest_in_range(bvh: BvhView, p: wp.vec3, first: int, count: int, best_leaf: int, best_sq: float):
     for leaf in range(first, first + count):
         a, b, c = leaf_triangle(bvh, leaf)
         d_sq = triangle_distance_sq(p, a, b, c)
-        if d_sq < best_sq:
+        if beats(d_sq, leaf, best_sq, best_leaf):
             best_sq = d_sq
             best_leaf = leaf
     return best_leaf, best_sq
@@ -259,8 +269,8 @@ def _nearest_in_range(bvh: BvhView, p: wp.vec3, first: int, count: int, best_lea
 
 @wp.func
 def nearest_leaf_within(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float, budget: int):
-    """Nearest leaf to p among those strictly closer than sqrt(best_sq), in at most `budget` node visits:
-    (best_leaf, best_sq, finished); (best_leaf, best_sq) stand if there is none."""
+    """Nearest leaf to p of those that beat (best_sq, best_leaf) (see `beats`), in at most `budget` node
+    visits: (best_leaf, best_sq, finished); (best_leaf, best_sq) stand if there is none."""
     if bvh.internal_count == 0:
         best_leaf, best_sq = _nearest_in_range(bvh, p, 0, 1, best_leaf, best_sq)
         return best_leaf, best_sq, True
@@ -270,11 +280,13 @@ def nearest_leaf_within(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float
 
 @wp.func
 def nearest_in_subtree(bvh: BvhView, p: wp.vec3, root: int, best_leaf: int, best_sq: float, budget: int):
-    """Nearest leaf under internal node `root` strictly closer than sqrt(best_sq), in at most `budget`
-    node visits: (best_leaf, best_sq, finished). An unfinished search still returns a valid upper bound.
+    """Nearest leaf under internal node `root` that beats (best_sq, best_leaf) (see `beats`), in at most
+    `budget` node visits: (best_leaf, best_sq, finished). An unfinished search still returns a valid upper
+    bound.
 
     The paper's Algorithm 2: depth-first, nearer child first, small subtrees searched at once, pruning
-    every box no closer than the best so far. A good starting bound (coherence) prunes early.
+    every box farther than the best so far (a box exactly as far may hold a tie of lower index). A good
+    starting bound (coherence) prunes early.
     """
     nodes = stack_int()
     bounds = stack_float()
@@ -284,7 +296,7 @@ def nearest_in_subtree(bvh: BvhView, p: wp.vec3, root: int, best_leaf: int, best
     visits = int(0)
     while count > 0:
         count -= 1
-        if bounds[count] >= best_sq:
+        if bounds[count] > best_sq:
             continue
         if visits == budget:
             return best_leaf, best_sq, False
@@ -308,15 +320,15 @@ def nearest_in_subtree(bvh: BvhView, p: wp.vec3, root: int, best_leaf: int, best
             near_small = lower_1[3] <= float(LEAF_SIZE)
             far_small = lower_0[3] <= float(LEAF_SIZE)
         # small subtrees first, the nearer one first, so the bound tightens before the far test
-        if near_small and d_near < best_sq:
+        if near_small and d_near <= best_sq:
             best_leaf, best_sq = _nearest_in_range(bvh, p, bvh.slot_first[near], bvh.slot_count[near], best_leaf, best_sq)
-        if far_small and d_far < best_sq:
+        if far_small and d_far <= best_sq:
             best_leaf, best_sq = _nearest_in_range(bvh, p, bvh.slot_first[far], bvh.slot_count[far], best_leaf, best_sq)
-        if not far_small and d_far < best_sq:
+        if not far_small and d_far <= best_sq:
             nodes[count] = bvh.slot_child[far]
             bounds[count] = d_far
             count += 1
-        if not near_small and d_near < best_sq:
+        if not near_small and d_near <= best_sq:
             nodes[count] = bvh.slot_child[near]
             bounds[count] = d_near
             count += 1
@@ -325,9 +337,9 @@ def nearest_in_subtree(bvh: BvhView, p: wp.vec3, root: int, best_leaf: int, best
 
 @wp.func
 def nearest_in_slot(bvh: BvhView, p: wp.vec3, slot: int, best_leaf: int, best_sq: float):
-    """Nearest leaf under the child held in `slot` (see BvhView), strictly closer than sqrt(best_sq)."""
+    """Nearest leaf under the child held in `slot` (see BvhView) that beats (best_sq, best_leaf)."""
     lower = load_vec4(bvh.slot_lower, slot)
-    if box_distance_sq(p, _xyz(lower), _xyz(load_vec4(bvh.slot_upper, slot))) >= best_sq:
+    if box_distance_sq(p, _xyz(lower), _xyz(load_vec4(bvh.slot_upper, slot))) > best_sq:
         return best_leaf, best_sq
     if lower[3] <= float(LEAF_SIZE):
         return _nearest_in_range(bvh, p, bvh.slot_first[slot], bvh.slot_count[slot], best_leaf, best_sq)

@@ -196,7 +196,7 @@ class CornerField:
         splitting = split.budget > 0
         long_count = b.ensure("corner.long_count", 1, wp.int32)
         long_corner = b.ensure("corner.long_corner", capacity if splitting else 1, wp.int32)
-        long_bound = b.ensure("corner.long_bound", capacity if splitting else 1, wp.float32)
+        long_start = b.ensure("corner.long_start", capacity if splitting else 1, wp.int64)
         long_best = b.ensure("corner.long_best", capacity if splitting else 1, wp.int64)
         if splitting:
             long_count.zero_()
@@ -214,11 +214,11 @@ class CornerField:
             far_capacity = max(1, capacity // FAR_LIST_FRACTION)
             far_count = b.ensure("corner.far_count", 1, wp.int32)
             far_corner = b.ensure("corner.far_corner", far_capacity, wp.int32)
-            far_bound = b.ensure("corner.far_bound", far_capacity, wp.float32)
+            far_start = b.ensure("corner.far_start", far_capacity, wp.int64)
             far_best = b.ensure("corner.far_best", far_capacity, wp.int64)
             far_count.zero_()
             wp.launch(list_far_corners, dim=capacity, inputs=[*seeding, (far_cells * cell) ** 2, far_capacity],
-                      outputs=[seeds, self.value, self.leaf, far_count, far_corner, far_bound, far_best],
+                      outputs=[seeds, self.value, self.leaf, far_count, far_corner, far_start, far_best],
                       device=self.device, block_dim=SEARCH_BLOCK_DIM)
             wp.launch(_settle_far_list, dim=1, inputs=[count], outputs=[far_count], device=self.device)
         beside = self._beside.fork() if by_winding or far_cells > 0 else None
@@ -226,7 +226,7 @@ class CornerField:
             levels, groups = _FAR_SPLIT
             wp.launch(_split_searches, dim=groups << levels,
                       inputs=[corner_keys, origin, cell, bvh, cuts(levels), levels, groups, far_count, far_capacity,
-                              far_corner, far_bound],
+                              far_corner, far_start],
                       outputs=[far_best], device=self.device, stream=beside)
             wp.launch(_gather_split, dim=groups, inputs=[groups, far_count, far_capacity, far_corner, far_best],
                       outputs=[self.value, self.leaf], device=self.device, stream=beside)
@@ -235,7 +235,7 @@ class CornerField:
             dim=capacity,
             inputs=[*seeding, split.budget if splitting else UNLIMITED_VISITS, 1 if far_cells > 0 else 0, seeds,
                     far_count if far_cells > 0 else long_count],
-            outputs=[self.value, self.leaf, long_count, long_corner, long_bound, long_best],
+            outputs=[self.value, self.leaf, long_count, long_corner, long_start, long_best],
             device=self.device,
             block_dim=SEARCH_BLOCK_DIM,
         )
@@ -243,7 +243,7 @@ class CornerField:
             ways = 1 << split.levels
             wp.launch(_split_searches, dim=split.groups * ways,
                       inputs=[corner_keys, origin, cell, bvh, cuts(split.levels), split.levels, split.groups,
-                              long_count, capacity, long_corner, long_bound],
+                              long_count, capacity, long_corner, long_start],
                       outputs=[long_best], device=self.device)
             wp.launch(_gather_split, dim=split.groups,
                       inputs=[split.groups, long_count, capacity, long_corner, long_best],
@@ -561,16 +561,17 @@ def coherent_seed(bvh: BvhView, p: wp.vec3, depth: int, previous_keys: wp.array(
 
 @wp.func
 def list_long_search(corner: int, best_sq: float, best_leaf: int, listed: int, long_count: wp.array(dtype=wp.int32),
-                     long_corner: wp.array(dtype=wp.int32), long_bound: wp.array(dtype=wp.float32),
+                     long_corner: wp.array(dtype=wp.int32), long_start: wp.array(dtype=wp.int64),
                      long_best: wp.array(dtype=wp.int64)) -> bool:
-    """A search too long for one thread, for _split_searches to take on from the bound it reached; whether
-    it fitted the list's `listed` entries (the count goes on past them)."""
+    """A search too long for one thread, for _split_searches to take on from the (bound, leaf) it reached;
+    whether it fitted the list's `listed` entries (the count goes on past them)."""
     item = wp.atomic_add(long_count, 0, 1)
     if item >= listed:
         return False
     long_corner[item] = corner
-    long_bound[item] = best_sq
-    long_best[item] = pack_distance_leaf(best_sq, best_leaf)
+    start = pack_distance_leaf(best_sq, best_leaf)
+    long_start[item] = start
+    long_best[item] = start
     return True
 
 
@@ -614,7 +615,7 @@ def corner_searches(
     nearest: wp.array(dtype=wp.int32),
     long_count: wp.array(dtype=wp.int32),
     long_corner: wp.array(dtype=wp.int32),
-    long_bound: wp.array(dtype=wp.float32),
+    long_start: wp.array(dtype=wp.int64),
     long_best: wp.array(dtype=wp.int64),
 ):
     """Unsigned distance and nearest leaf of each corner; -1 - seed where nothing lies within the band.
@@ -644,7 +645,7 @@ def corner_searches(
     best_leaf, best_sq, finished = _nearest_with_band(bvh, p, seed, band, budget)
     _write_answer(i, best_leaf, best_sq, seed, band, distance, nearest)
     if not finished:
-        list_long_search(i, best_sq, best_leaf, capacity, long_count, long_corner, long_bound, long_best)
+        list_long_search(i, best_sq, best_leaf, capacity, long_count, long_corner, long_start, long_best)
 
 
 @wp.kernel(enable_backward=False)
@@ -672,7 +673,7 @@ def list_far_corners(
     nearest: wp.array(dtype=wp.int32),
     far_count: wp.array(dtype=wp.int32),
     far_corner: wp.array(dtype=wp.int32),
-    far_bound: wp.array(dtype=wp.float32),
+    far_start: wp.array(dtype=wp.int64),
     far_best: wp.array(dtype=wp.int64),
 ):
     """Each corner's seed leaf; a corner whose starting bound (its seed's distance, or the band) is at least
@@ -690,7 +691,7 @@ def list_far_corners(
     if best_sq < far_sq:
         return
     seeds[i] = -2 - seed  # far: corner_searches leaves it unless _settle_far_list drops the list
-    if list_long_search(i, best_sq, best, far_capacity, far_count, far_corner, far_bound, far_best):
+    if list_long_search(i, best_sq, best, far_capacity, far_count, far_corner, far_start, far_best):
         _write_answer(i, best, best_sq, seed, band, distance, nearest)  # the start, which the split improves on
 
 
@@ -715,12 +716,13 @@ def _split_searches(
     long_count: wp.array(dtype=wp.int32),
     listed: int,
     long_corner: wp.array(dtype=wp.int32),
-    long_bound: wp.array(dtype=wp.float32),
+    long_start: wp.array(dtype=wp.int64),
     long_best: wp.array(dtype=wp.int64),
 ):
     """Thread (g, k) searches subtree k of the cut for the long corners g, g + groups, ... (of the first
-    `listed` at most) from each one's bound, and keeps the least (distance, leaf) per corner. Every thread
-    starts from the same bound, so the result does not depend on the order the threads run in."""
+    `listed` at most) from each one's (bound, leaf), and keeps the least (distance, leaf) per corner: the
+    order of `beats`, which the packed minimum keeps too. Every thread starts from the same (bound, leaf),
+    so the result does not depend on the order the threads run in."""
     t = wp.tid()
     group = t >> levels
     slot = cut[t - (group << levels)]
@@ -728,9 +730,9 @@ def _split_searches(
         return
     for item in range(group, wp.min(long_count[0], listed), groups):  # a dropped list counts -1
         p = _lattice_point(corner_keys[long_corner[item]], origin, cell)
-        best_sq = long_bound[item]
-        leaf, leaf_sq = nearest_in_slot(bvh, p, slot, -1, best_sq)
-        if leaf >= 0:
+        start_leaf = packed_leaf(long_start[item])
+        leaf, leaf_sq = nearest_in_slot(bvh, p, slot, start_leaf, packed_distance_sq(long_start[item]))
+        if leaf != start_leaf:
             atomic_min_packed(long_best, item, pack_distance_leaf(leaf_sq, leaf))
 
 

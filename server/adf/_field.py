@@ -150,7 +150,7 @@ class _Domain:
         elif previous is not None:
             side = previous.side
         else:
-            raise InvalidInputError("vertices must not all coincide: the mesh has zero extent")
+            raise InvalidInputError("the vertices the faces use must not all coincide: the mesh has zero extent")
         centre = (lo.astype(np.float64) + hi.astype(np.float64)) / 2.0
         snapped = centre.astype(np.float32).astype(np.float64)
         shift = float(np.max(np.abs(snapped - centre)))
