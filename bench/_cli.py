@@ -6,11 +6,17 @@ import argparse
 import importlib
 import math
 import pathlib
+import signal
 import sys
+import threading
+from contextlib import contextmanager
+from typing import Iterator
 
+from badf.bench._common import BenchFlagError
 from badf.protocol import DEFAULT_LIMITS
 from badf.server._cuda import device_problem
 from badf.server._mesh_files import MeshFileError
+from badf.web_viewer._viewer import RESOLUTIONS
 
 _BENCHMARKS = {
     "engine": ("badf.bench.engine", "per-stage build/update times, memory, and the dense-grid baseline"),
@@ -36,14 +42,37 @@ def run(args: argparse.Namespace) -> int:
     flags = sub.parse_args(args.rest)
     try:
         check_flags(flags)
-        return int(module.run(flags) or 0)
+        with _stop_signals_as_ctrl_c():
+            return int(module.run(flags) or 0)
     except (MeshFileError, BenchFlagError) as error:
         print(f"badf bench {args.name}: {error}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"\nbadf bench {args.name}: stopped before the end", file=sys.stderr)
+        return 130
 
 
-class BenchFlagError(ValueError):
-    """A benchmark flag whose value would fail the run, or make it measure nothing."""
+@contextmanager
+def _stop_signals_as_ctrl_c() -> Iterator[None]:
+    """SIGTERM and SIGHUP end a run as Ctrl-C does (KeyboardInterrupt), so the benchmarks' `finally` blocks
+    end the workers and clients they started. Before, `bench service`, `soak`, `scaleout` and `viewer` died at
+    once on either and left them running on their ports (outside check, 2026-11-22). The handlers before
+    are put back afterwards (the benchmarks also run inside other programs, tests among them); a SIGHUP
+    already ignored (nohup) stays ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        yield  # only the main thread may set handlers; a caller on another thread keeps its own
+        return
+    taken = [signal.SIGTERM]
+    if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:
+        taken.append(signal.SIGHUP)
+    before = {signum: signal.getsignal(signum) for signum in taken}
+    for signum in taken:
+        signal.signal(signum, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        for signum, handler in before.items():
+            signal.signal(signum, handler)
 
 
 # What each flag of the benchmarks may be, by its name (argparse's dest); a flag left at None is not checked.
@@ -97,14 +126,18 @@ def check_flags(flags: argparse.Namespace) -> None:
             raise BenchFlagError(f"{flag} must be a positive finite number, got {value}")
         if rule & _NOT_NEGATIVE and not (math.isfinite(value) and value >= 0):
             raise BenchFlagError(f"{flag} must be a finite number >= 0, got {value}")
-    if getattr(flags, "resolution", None) is not None and not 1 <= flags.resolution <= 2048:
-        raise BenchFlagError(f"--resolution must be in 1..2048, got {flags.resolution}")
     for dest in ("out", "screenshot"):  # written at the end: a folder that is not there would lose the run
         path = getattr(flags, dest, None)
         if path is not None and not pathlib.Path(path).resolve().parent.is_dir():
             raise BenchFlagError(f"--{dest}: the folder of {path!r} does not exist")
         if path is not None and pathlib.Path(path).is_dir():  # the run's results were lost at the end
             raise BenchFlagError(f"--{dest}: {path!r} is a folder; name a file in it")
+    resolution = getattr(flags, "resolution", None)  # the viewer's: it refused others after the run had begun
+    if resolution is not None and resolution not in RESOLUTIONS:
+        raise BenchFlagError(f"--resolution must be one of {', '.join(map(str, RESOLUTIONS))}, got {resolution}")
+    out_dir = getattr(flags, "out_dir", None)  # made if missing; a file there would fail the run at its end
+    if out_dir is not None and pathlib.Path(out_dir).exists() and not pathlib.Path(out_dir).is_dir():
+        raise BenchFlagError(f"--out-dir: {out_dir!r} is a file; name a folder")
     render = getattr(flags, "render", None)
     if render is not None and not pathlib.Path(render).is_file():
         raise BenchFlagError(f"--render: no such file {render!r}")

@@ -13,6 +13,10 @@ import numpy as np
 REPOSITORY = pathlib.Path(__file__).resolve().parents[1]
 
 
+class BenchFlagError(ValueError):
+    """A benchmark flag whose value would fail the run, or make it measure nothing (`badf bench` exits 2)."""
+
+
 def mesh_folders() -> list[pathlib.Path]:
     """Where named meshes are looked for: $BADF_SHARED_DATA, the bundled test data, the shared folder beside
     the checkout."""

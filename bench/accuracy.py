@@ -366,6 +366,11 @@ def run(args: argparse.Namespace) -> int:
         except (UnicodeDecodeError, json.JSONDecodeError) as error:
             print(f"badf bench accuracy: --render {args.render}: not a results JSON file ({error})", file=sys.stderr)
             return 2
+        if not isinstance(report, dict) or report.get("benchmark") != "accuracy" or "rows" not in report:
+            kind = report.get("benchmark") if isinstance(report, dict) else None
+            print(f"badf bench accuracy: --render {args.render}: not the results of `badf bench accuracy`"
+                  + (f" (they are of `badf bench {kind}`)" if isinstance(kind, str) else ""), file=sys.stderr)
+            return 2
         write_outputs(report, pathlib.Path(args.out_dir), pathlib.Path(args.render).stem.removeprefix("accuracy-"))
         return 0
     from badf.server.adf import DistanceField

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from badf.bench._common import bench_device_name, deform, print_table, start_warp, timestamp
+from badf.bench._common import BenchFlagError, bench_device_name, deform, print_table, start_warp, timestamp
 from badf.server._mesh_files import MESH_HELP, read_mesh
 
 
@@ -119,7 +119,24 @@ def _measure_field(vertices, faces, *, device: str, repeat: int, options: dict, 
     }
 
 
-def measure_queries(field, vertices, *, device: str, repeat: int, count: int = 65536) -> dict:
+# Points of a benchmark's query checked against the float64 oracle: a sample, as the oracle takes seconds per
+# thousand points on a mesh of 70K triangles.
+ORACLE_SAMPLE = 1000
+
+
+def _oracle_errors(values: np.ndarray, points: np.ndarray, vertices, faces, diag: float) -> dict:
+    """Largest and mean |value - oracle's signed distance| in diagonals over the first ORACLE_SAMPLE points."""
+    from badf.bench._oracle import signed_distance
+
+    truth = signed_distance(points[:ORACLE_SAMPLE], vertices, faces)
+    error = np.abs(np.asarray(values[:ORACLE_SAMPLE], np.float64) - truth)
+    return {"max_error_diag": float(error.max() / diag), "mean_error_diag": float(error.mean() / diag),
+            "points": len(truth)}
+
+
+def measure_queries(field, vertices, faces, *, device: str, repeat: int, count: int = 65536) -> dict:
+    """Timed ADF and exact queries of `count` points spread over the mesh's box, with each mode's error
+    against the float64 oracle (winding-number sign) on a sample of them, and ADF's against exact on all."""
     rng = np.random.default_rng(0)
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     points = rng.uniform(lo, hi, size=(count, 3)).astype(np.float32)
@@ -134,6 +151,8 @@ def measure_queries(field, vertices, *, device: str, repeat: int, count: int = 6
     out["query_points"] = count
     out["adf_vs_exact_max_error_diag"] = float(error.max() / diag)
     out["adf_vs_exact_mean_error_diag"] = float(error.mean() / diag)
+    for mode in ("adf", "exact"):
+        out[f"{mode}_vs_oracle"] = _oracle_errors(results[mode].distance, points, vertices, faces, diag)
     return out
 
 
@@ -172,11 +191,17 @@ def measure_dense_baseline(vertices, faces, *, device: str, repeat: int, resolut
     query(0)
     builds = _time_wall(build, device, repeat)
     queries = _time_wall(query, device, repeat)
+    # its accuracy at grid points spread over the grid (Warp's sign is its own, not the winding number's)
+    picked = np.random.default_rng(0).choice(resolution**3, size=min(ORACLE_SAMPLE, resolution**3), replace=False)
+    index = np.stack([picked // resolution**2, (picked // resolution) % resolution, picked % resolution], axis=1)
+    at = ((lo + hi) / 2 - side / 2).astype(np.float64) + index * step  # as the kernel's points, in float64
+    diag = float(np.linalg.norm(hi - lo))
     return {
         "resolution": resolution,
         "build_ms": round(_median(builds), 4),
         "query_ms": round(_median(queries), 4),
         "grid_bytes": resolution**3 * 4,
+        "grid_vs_oracle": _oracle_errors(grid.numpy()[picked], at, vertices, faces, diag),
     }
 
 
@@ -528,7 +553,12 @@ def _write_part(args: argparse.Namespace, benchmark: str, device: str, faces, re
 
 
 def run(args: argparse.Namespace) -> int:
+    # flags that would be run as if absent
+    if (args.block_sweep or args.register_sweep) and not args.kernels:
+        raise BenchFlagError("--block-sweep and --register-sweep go with --kernels")
     device = start_warp(args.device)
+    if args.kernels and not device.startswith("cuda"):
+        raise BenchFlagError("--kernels profiles CUDA activity; give a CUDA --device")
     vertices, faces = read_mesh(args.mesh)
     repeat = args.repeat
     if args.kernels:
@@ -540,7 +570,7 @@ def run(args: argparse.Namespace) -> int:
             print_table(f"corner kernels by threads per block, depth {blocks['depth']}, {blocks['corners']} corners",
                         ["block dim", "searches ms", "signs ms", "distance stage ms"],
                         [[r["block_dim"], r["searches_ms"], r["signs_ms"], r["distances_ms"]] for r in blocks["rows"]])
-        if args.register_sweep and device.startswith("cuda"):
+        if args.register_sweep:
             caps = measure_register_caps(vertices, faces, depth=args.depth, device=device, repeat=repeat)
             profile["register_caps"] = caps
             print_table(f"corner kernels by cap on registers per thread, depth {caps['depth']}, {caps['corners']} "
@@ -616,7 +646,7 @@ def run(args: argparse.Namespace) -> int:
         result = measure_field(vertices, faces, device=device, repeat=repeat, **options)
         field, current = result.pop("field"), result.pop("vertices")
         if options == configs[0]:
-            result.update(measure_queries(field, current, device=device, repeat=repeat))
+            result.update(measure_queries(field, current, faces, device=device, repeat=repeat))
             result["traversal"] = measure_traversals(field, current, faces, device=device, repeat=repeat)
         report["configurations"].append(result)
         rows.append([
@@ -643,10 +673,16 @@ def run(args: argparse.Namespace) -> int:
     print("stages of the first configuration, build (ms):", first["build_stages_ms"])
     print(f"stages of the first configuration, frames that move the domain (ms; {first['moving_domain_moves']} moves, "
           f"{first['moving_measured_frames']} measured frames):", first["moving_update_stages_ms"])
+    adf, exact, grid = first["adf_vs_oracle"], first["exact_vs_oracle"], baseline["grid_vs_oracle"]
     print(f"queries of 65,536 points: adf {first['query_adf_ms']} ms, exact {first['query_exact_ms']} ms;"
           f" adf vs exact max error {first['adf_vs_exact_max_error_diag']:.2e} diag")
+    print(f"  against the float64 oracle at {adf['points']} of them (max / mean, diagonals): adf "
+          f"{adf['max_error_diag']:.2e} / {adf['mean_error_diag']:.2e}, exact {exact['max_error_diag']:.2e} / "
+          f"{exact['mean_error_diag']:.2e}")
     print(f"dense baseline ({baseline['resolution']}^3 grid, wp.Mesh + mesh_query_point_sign_normal): "
-          f"build {baseline['build_ms']} ms, query {baseline['query_ms']} ms, grid {baseline['grid_bytes'] / 2**20:.2f} MiB")
+          f"build {baseline['build_ms']} ms, query {baseline['query_ms']} ms, grid {baseline['grid_bytes'] / 2**20:.2f} MiB;"
+          f" against the oracle at {grid['points']} grid points {grid['max_error_diag']:.2e} / "
+          f"{grid['mean_error_diag']:.2e} diagonals (max / mean)")
     if report["allocations"] is not None:
         a = report["allocations"]
         print(f"device memory held, by the allocator's count: the field {a['field_allocated_bytes'] / 2**20:.2f} MiB "

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from badf.bench._common import deform, fill_sized_defaults, print_table, timestamp
+from badf.bench._common import BenchFlagError, deform, fill_sized_defaults, print_table, timestamp
 from badf.server._mesh_files import MESH_HELP, read_mesh
 
 _SPAWN = multiprocessing.get_context("spawn")
@@ -69,13 +69,16 @@ def run(args: argparse.Namespace) -> int:
         gpu_count, no_gpu = 0, str(error)
     device = args.device or ("cuda" if gpu_count else "cpu")
     if device == "cuda" and not gpu_count:
-        raise SystemExit(f"badf bench scaleout --device cuda: {no_gpu}")
+        raise BenchFlagError(f"--device cuda: {no_gpu}")
     workers = args.workers or (gpu_count if device == "cuda" else 2)
-    if workers < 1 or (device == "cuda" and workers > gpu_count):
-        raise SystemExit(f"badf bench scaleout: --workers must be 1 to {gpu_count or 'any'}, got {workers}")
+    # one worker per GPU, or per CPU core: 100 CPU workers on 2 cores took 20 GB and measured only contention
+    most = gpu_count if device == "cuda" else (os.cpu_count() or 1)
+    if not 1 <= workers <= most:
+        raise BenchFlagError(f"--workers must be 1 to {most} (one per {'GPU' if device == 'cuda' else 'CPU core'} "
+                             f"here), got {workers}")
     client_counts = sorted({int(count) for count in args.clients.split(",") if count})
     if not client_counts or client_counts[0] < 1 or args.points < 1 or args.seconds <= 0:
-        raise SystemExit("badf bench scaleout: --clients, --points and --seconds must be positive")
+        raise BenchFlagError("--clients, --points and --seconds must be positive")
 
     vertices, faces = read_mesh(args.mesh)
     devices = [f"cuda:{index}" for index in range(workers)] if device == "cuda" else ["cpu"] * workers
@@ -137,7 +140,33 @@ def _phase(args: argparse.Namespace, devices: list[str], client_counts: list[int
                 f"round trip median {run['median_ms']:.2f} ms",
                 flush=True,
             )
+        accuracy = _served_accuracy(client, names[: len(devices)], vertices, faces)
+        print(f"  the answers' accuracy: {accuracy['points']} points on {accuracy['objects']} object(s) against the "
+              f"float64 oracle: {accuracy['max_error_diag']:.2e} / {accuracy['mean_error_diag']:.2e} diagonals "
+              f"(max / mean)", flush=True)
+    for run in runs:
+        run["accuracy"] = accuracy
     return runs
+
+
+def _served_accuracy(client, names: list[str], vertices: np.ndarray, faces: np.ndarray) -> dict[str, Any]:
+    """What the timed queries' answers are worth: the objects `names` (one per worker, as placement alternates),
+    set to the mesh's own frame, answer a sample of points like the clients' against the float64 oracle."""
+    from badf.bench._oracle import bbox_diagonal, signed_distance
+    from badf.bench.engine import ORACLE_SAMPLE
+
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    points = np.random.default_rng(0).uniform(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), size=(ORACLE_SAMPLE, 3))
+    points = points.astype(np.float32)
+    truth = signed_distance(points, vertices, faces)
+    errors = []
+    for name in names:
+        remote = client.object(name)
+        remote.update(vertices)
+        errors.append(np.abs(remote.query(points).distance.astype(np.float64) - truth))
+    error = np.concatenate(errors) / bbox_diagonal(vertices)
+    return {"objects": len(names), "points": len(points), "max_error_diag": float(error.max()),
+            "mean_error_diag": float(error.mean())}
 
 
 def _timed_run(args: argparse.Namespace, endpoint: str, client, names: list[str]) -> dict[str, Any]:
@@ -160,6 +189,10 @@ def _timed_run(args: argparse.Namespace, endpoint: str, client, names: list[str]
         before = {info.worker: info for info in client.workers()}
         clients = [results.get(timeout=args.seconds + 600) for _ in processes]
         after = {info.worker: info for info in client.workers()}
+    except BaseException:  # Ctrl-C, SIGTERM or a failure: the clients need not finish their timed window
+        for process in processes:
+            process.terminate()
+        raise
     finally:
         for process in processes:
             process.join(60)

@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
     }
     with _service(device) as (client, echo):
         remote = client.register("bench", vertices, faces, depth=args.depth)
-        wire = (_frame_bytes(frames[0]) + _query_bytes(points)[0], _query_bytes(points)[1])
+        wire = (_update_bytes(frames[0])[0] + _query_bytes(points)[0], _update_bytes(frames[0])[1] + _query_bytes(points)[1])
 
         def local_round(i: int) -> None:
             field.update(frames[i % len(frames)])
@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
             remote.query(points)
 
         def echo_round(_i: int) -> None:
-            _echo(echo, _frame_bytes(frames[0]), 64)
+            _echo(echo, *_update_bytes(frames[0]))
             _echo(echo, *_query_bytes(points))
 
         n = args.round_trips
@@ -115,10 +115,11 @@ def run(args: argparse.Namespace) -> int:
             _time("round trip, service", served_round, n, per_item=args.points, sizes=wire),
             _time("round trip, Zenoh echo of its bytes", echo_round, n, sizes=wire),
             _time("update, in-process", lambda i: field.update(frames[i % len(frames)]), n),
-            _time("update, service", lambda i: remote.update(frames[i % len(frames)]), n),
+            _time("update, service", lambda i: remote.update(frames[i % len(frames)]), n, sizes=_update_bytes(frames[0])),
         ]
         for size in batches:
             timings += _batch_timings(field, remote, echo, cloud[:size], args.repeats)
+        report["accuracy"] = _accuracy(field, remote, frames[0], faces, points)
         report["worker_field_stats"] = remote.info().field_stats
         remote.delete()
     report["timings"] = [asdict(timing) for timing in timings]
@@ -132,11 +133,33 @@ def run(args: argparse.Namespace) -> int:
             for t in timings
         ],
     )  # fmt: skip
+    accuracy = report["accuracy"]
+    print(f"the times' accuracy: the service's ADF distances at {accuracy['points']} of the round trip's points against "
+          f"the float64 oracle: {accuracy['max_error_diag']:.2e} / {accuracy['mean_error_diag']:.2e} diagonals (max / "
+          f"mean); the same as in-process, bit for bit: {'yes' if accuracy['service_equals_in_process'] else 'NO'}")
     if args.out:
         with open(args.out, "w") as handle:
             json.dump(report, handle, indent=2)
         print("wrote", args.out)
-    return 0
+    return 0 if accuracy["service_equals_in_process"] else 1
+
+
+def _accuracy(field, remote, vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> dict:
+    """What the timed answers are worth: the served distances of one frame against the float64 oracle (on a
+    sample: the oracle takes seconds per thousand points on a large mesh), and whether they equal the
+    in-process engine's."""
+    from badf.bench._oracle import bbox_diagonal, signed_distance
+    from badf.bench.engine import ORACLE_SAMPLE
+
+    sample = points[:ORACLE_SAMPLE]
+    remote.update(vertices)
+    field.update(vertices)
+    served = remote.query(sample).distance
+    error = np.abs(served.astype(np.float64) - signed_distance(sample, vertices, faces))
+    diag = bbox_diagonal(vertices)
+    return {"points": len(sample), "mode": "adf", "max_error_diag": float(error.max() / diag),
+            "mean_error_diag": float(error.mean() / diag),
+            "service_equals_in_process": bool(np.array_equal(served, field.query(sample).distance))}
 
 
 def _batch_timings(field, remote, echo, batch: np.ndarray, repeats: int) -> list[Timing]:
@@ -175,10 +198,11 @@ def _time(
     )
 
 
-def _frame_bytes(vertices: np.ndarray) -> int:
-    from badf.protocol import Frame, encode
+def _update_bytes(vertices: np.ndarray) -> tuple[int, int]:
+    """Bytes of a frame of `vertices`, and of the acknowledgement a blocking update waits for."""
+    from badf.protocol import Frame, FrameAck, encode
 
-    return len(encode(Frame("bench", 1, vertices)))
+    return len(encode(Frame("bench", 1, vertices))), len(encode(FrameAck("bench", 1)))
 
 
 def _query_bytes(points: np.ndarray) -> tuple[int, int]:

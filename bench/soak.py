@@ -34,7 +34,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from badf.bench._common import bench_device_name, print_table, timestamp
+from badf.bench._common import BenchFlagError, bench_device_name, print_table, timestamp
 
 _SPAWN = multiprocessing.get_context("spawn")
 PROBE = np.array([[2.0, 0.0, 0.0]], np.float32)
@@ -506,6 +506,8 @@ def run(args: argparse.Namespace) -> int:
         clients=args.clients, objects_per_client=args.objects, seconds=args.seconds, warm_up_s=args.warm_up,
         device=args.device, depth=args.depth, grid=args.grid, max_rounds=args.max_rounds,
     )  # fmt: skip
+    if args.warm_up is not None and args.warm_up >= settings.seconds:  # it measured memory after the run instead
+        raise BenchFlagError(f"--warm-up ({args.warm_up:g} s) must be shorter than --seconds ({settings.seconds:g})")
     report = run_soak(settings)
     print_summary(report)
     if args.out:

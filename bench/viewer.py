@@ -103,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
             positions = _sweep(frames[0], "xyz".index(args.axis), args.repeats)
             timings = _client_timings(remote, frames, positions, args)
             timings += _viewer_side_timings(remote, positions, args, viser_missing)
+            report["accuracy"] = _slice_accuracy(remote, frames[0], faces, float(positions[len(positions) // 4]), args)
             report["worker_field_stats"] = remote.info().field_stats
             following: list[Following] = []
             if viser_missing is None:
@@ -127,6 +128,9 @@ def run(args: argparse.Namespace) -> int:
             [[f.what, round(f.seconds, 1), f.frames_streamed, f.slices_drawn, round(f.slices_per_second, 1),
               f.frames_advanced, _round(f.round_trip_ms), _round(f.draw_ms)] for f in following],
         )  # fmt: skip
+    accuracy = report["accuracy"]
+    print(f"the slices' accuracy: {accuracy['points']} samples of one slice against the float64 oracle: "
+          f"{accuracy['max_error_diag']:.2e} / {accuracy['mean_error_diag']:.2e} diagonals (max / mean)")
     if viser_missing is not None:
         print(f"\nviewer rows skipped: {viser_missing}")
         report["skipped"] = viser_missing
@@ -135,6 +139,29 @@ def run(args: argparse.Namespace) -> int:
             json.dump(report, handle, indent=2)
         print("wrote", args.out)
     return 0
+
+
+def _slice_accuracy(remote, vertices: np.ndarray, faces: np.ndarray, position: float, args) -> dict:
+    """What the timed slices are worth: samples of one slice of `vertices` (the field's values at the grid's
+    sample points, as SliceReply places them) against the float64 oracle."""
+    from badf.bench._oracle import bbox_diagonal, signed_distance
+    from badf.bench.engine import ORACLE_SAMPLE
+
+    remote.update(vertices)
+    reply = remote.slice(args.axis, position, resolution=args.resolution)
+    rows, columns = reply.grid.shape
+    picked = np.random.default_rng(0).choice(rows * columns, size=min(ORACLE_SAMPLE, rows * columns), replace=False)
+    row, column = np.divmod(picked, columns)
+    (u_min, v_min), (u_max, v_max) = reply.extent
+    points = np.empty((len(picked), 3))
+    axis = "xyz".index(reply.axis)
+    u_axis, v_axis = [other for other in range(3) if other != axis]
+    points[:, axis] = reply.position
+    points[:, u_axis] = u_min + (column + 0.5) * (u_max - u_min) / columns
+    points[:, v_axis] = v_min + (row + 0.5) * (v_max - v_min) / rows
+    error = np.abs(reply.grid[row, column].astype(np.float64) - signed_distance(points, vertices, faces))
+    diag = bbox_diagonal(vertices)
+    return {"points": len(picked), "max_error_diag": float(error.max() / diag), "mean_error_diag": float(error.mean() / diag)}
 
 
 def _round(value: float | None) -> float | str:

@@ -28,6 +28,7 @@ from badf.server._signals import on_stop_signals
 # Depth when none is given: what keeps frames interactive on each kind of device.
 DEFAULT_DEPTH = {"cuda": 7, "cpu": 5}
 CLOTH_SPHERE_DEPTH = {"cuda": 7, "cpu": 5}
+DEFAULT_POINTS = 8192  # morph: points queried per frame
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,7 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="worker device, e.g. cuda:0 or cpu (default: the first GPU if there is one, else cpu)")
     parser.add_argument("--depth", type=int, default=None,
                         help=f"octree depth (default: {DEFAULT_DEPTH['cuda']} on a GPU, {DEFAULT_DEPTH['cpu']} on the CPU)")
-    parser.add_argument("--points", type=int, default=8192, metavar="N", help="morph: points queried per frame")
+    parser.add_argument("--points", type=int, default=None, metavar="N", help=f"morph: points queried per frame ({DEFAULT_POINTS})")
     parser.add_argument("--stiff", action="store_true",
                         help="cloth: penalty stiffness 5e4 N/m per particle with one 1/60 s step per frame")
     parser.add_argument("--listen", default=DEFAULT_ENDPOINT, metavar="ENDPOINT",
@@ -60,6 +61,16 @@ def run(args: argparse.Namespace) -> int:
     if args.mesh and args.sequence:
         print("badf demo: give --mesh or --sequence, not both", file=sys.stderr)
         return 2
+    # a flag of the other scene was run as if absent (outside check, 2026-11-22)
+    other_scene = {"cloth": (("--mesh", args.mesh), ("--sequence", args.sequence), ("--points", args.points)),
+                   "morph": (("--stiff", args.stiff or None),)}[args.scene]
+    for flag, value in other_scene:
+        if value is not None:
+            print(f"badf demo {args.scene}: {flag} is for the {'morph' if args.scene == 'cloth' else 'cloth'} scene",
+                  file=sys.stderr)
+            return 2
+    if args.points is None:
+        args.points = DEFAULT_POINTS
     if not 1 <= args.points <= DEFAULT_LIMITS.max_points:
         print(f"badf demo: --points must be in 1..{DEFAULT_LIMITS.max_points}, got {args.points}", file=sys.stderr)
         return 2

@@ -59,3 +59,20 @@ def wait_until(condition, *, timeout: float = 20.0, what: str = "the condition")
             pytest.fail(f"timed out after {timeout} s waiting for {what}")
         time.sleep(pause)  # polling interval, not synchronisation: the condition decides
         pause = min(pause * 2, 0.05)
+
+
+def process_group_members(pgid: int) -> list[int]:
+    """Process ids whose process group is `pgid` (Linux /proc): a command started in a session of its own,
+    and everything it started."""
+    members = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as handle:
+                fields = handle.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid:  # fields after the name: state, ppid, pgrp
+            members.append(int(entry))
+    return members

@@ -4,9 +4,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import meshes
+import pytest
+import tolerances as tol
+from conftest import process_group_members, wait_until
 
 from badf.bench import _cli
 
@@ -23,6 +30,10 @@ def test_service_benchmark_runs(tmp_path: Path) -> None:
     assert "round trip, service" in names and "query 1024 pts, Zenoh echo" in names
     assert all(timing["samples"] > 0 and timing["median_ms"] > 0 for timing in report["timings"])
     assert report["worker_field_stats"]["frame"] > 0
+    # the times' accuracy: the served answers equal the engine's in-process ones, and the oracle bounds both
+    assert report["accuracy"]["service_equals_in_process"]
+    assert report["accuracy"]["points"] == 1000 and 0 < report["accuracy"]["max_error_diag"] < 0.5
+    assert next(t for t in report["timings"] if t["what"] == "update, service")["request_bytes"] > 0
 
 
 def _run_engine_bench(tmp_path: Path, *flags: str) -> dict:
@@ -45,6 +56,13 @@ def test_engine_benchmark_runs(tmp_path: Path) -> None:
     assert first["moving_domain_moves"] == 3 and first["moving_measured_frames"] == 1  # the build only
     assert 0 <= first["adf_vs_exact_max_error_diag"] < 1
     assert report["dense_baseline"]["query_ms"] > 0
+    # each speed with its accuracy against the float64 oracle: exact queries within the exact tolerance, ADF
+    # interpolation's error larger on average, and bounded
+    assert first["exact_vs_oracle"]["points"] == 1000
+    assert first["exact_vs_oracle"]["max_error_diag"] <= tol.EXACT_DISTANCE
+    assert first["exact_vs_oracle"]["mean_error_diag"] <= first["adf_vs_oracle"]["mean_error_diag"]
+    assert 0 < first["adf_vs_oracle"]["max_error_diag"] < 0.5
+    assert report["dense_baseline"]["grid_vs_oracle"]["points"] == 1000
 
 
 def test_engine_sign_sweep_runs(tmp_path: Path) -> None:
@@ -54,3 +72,31 @@ def test_engine_sign_sweep_runs(tmp_path: Path) -> None:
     resolved = {r["options"]["sign"]: r["sign_resolved"] for r in report["signs"]}
     assert resolved == {"auto": "pseudonormal", "pseudonormal": "pseudonormal", "winding": "winding", "none": "none"}
     assert all(r["update_gpu_ms"] > 0 and "normals" in r["update_stages_ms"] for r in report["signs"])
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP], ids=["sigterm", "hangup"])
+def test_a_signal_ends_a_benchmark_and_the_processes_it_started(tmp_path: Path, signum) -> None:
+    """SIGTERM or SIGHUP to `badf bench service` ended it at once and left its worker and echo router running,
+    still listening on their ports (outside check, 2026-11-22). They now end a run as Ctrl-C does."""
+    command = [sys.executable, "-m", "badf.cli", "bench", "service", "--mesh", str(meshes.data_file("spot")),
+               "--device", "cpu", "--depth", "4", "--small", "--round-trips", "100000", "--batches", "1024",
+               "--out", str(tmp_path / "service.json")]  # fmt: skip
+    # a session of its own, so the benchmark and everything it starts share one process group to inspect
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                               start_new_session=True)  # fmt: skip
+    try:
+        # the benchmark, the resource tracker, the echo router and the worker
+        wait_until(lambda: len(process_group_members(process.pid)) >= 4, timeout=300,
+                   what="the benchmark's worker and echo router to start")  # fmt: skip
+        os.kill(process.pid, signum)
+        output, _ = process.communicate(timeout=180)
+        assert process.returncode == 130, output
+        assert "stopped before the end" in output
+        wait_until(lambda: not process_group_members(process.pid), timeout=120,
+                   what="every process the benchmark started to end")  # fmt: skip
+        assert not (tmp_path / "service.json").exists()
+    finally:
+        if process_group_members(process.pid):
+            os.killpg(process.pid, signal.SIGKILL)  # the group this test started
+        if process.poll() is None:
+            process.wait()

@@ -36,3 +36,6 @@ def test_scaleout_benchmark_runs(tmp_path: Path) -> None:
         answered = sum(worker["points_answered"] for worker in run["per_worker"].values())
         assert 0 < answered <= sum(client["points"] for client in clients)
     assert runs[0]["frames_speedup"] == runs[0]["points_speedup"] == 1.0
+    # the answers' accuracy beside the speeds: an object on each worker against the float64 oracle
+    assert [run["accuracy"]["objects"] for run in runs] == [1, 2]
+    assert all(run["accuracy"]["points"] == 1000 and 0 < run["accuracy"]["max_error_diag"] < 0.5 for run in runs)

@@ -61,6 +61,21 @@ CASES = [
     (["bench", "soak", "--device", "gpu3"], "--device 'gpu3' is not a device here"),
     (["bench", "accuracy", "--meshes", "nosuchmesh"], "none of --meshes nosuchmesh is a mesh file"),
     (["bench", "accuracy", "--render", "<not-npz>"], "not a results JSON file"),
+    # refused after minutes of running, with a traceback (outside check, 2026-11-22)
+    (["bench", "viewer", "--small", "--mesh", "<no-faces>", "--resolution", "100"],
+     "--resolution must be one of 64, 128, 256, 512, 1024, got 100"),
+    (["bench", "accuracy", "--out-dir", "<not-npz>"], "is a file; name a folder"),
+    (["bench", "accuracy", "--render", "<engine-json>"], "not the results of `badf bench accuracy` (they are of"),
+    (["bench", "scaleout", "--small", "--device", "cpu", "--mesh", "<no-faces>", "--workers", "100000"],
+     "--workers must be 1 to"),
+    # flags run as if absent (outside check, 2026-11-22)
+    (["bench", "engine", "--quick", "--mesh", "<no-faces>", "--block-sweep"], "--block-sweep and --register-sweep go with"),
+    (["bench", "engine", "--device", "cpu", "--mesh", "<no-faces>", "--kernels"], "--kernels profiles CUDA activity"),
+    (["bench", "soak", "--seconds", "10", "--warm-up", "100"], "--warm-up (100 s) must be shorter than --seconds (10)"),
+    (["demo", "cloth", "--no-viewer", "--frames", "1", "--listen", "<free>", "--mesh", "m.obj"],
+     "badf demo cloth: --mesh is for the morph scene"),
+    (["demo", "cloth", "--no-viewer", "--frames", "1", "--listen", "<free>", "--points", "10"], "--points is for the morph"),
+    (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--stiff"], "badf demo morph: --stiff is for the cloth"),
 ]
 
 
@@ -70,7 +85,9 @@ def test_a_malformed_command_line_is_one_clear_line(args: list[str], message: st
     np.savez(tmp_path / "no-faces.npz", vertices=np.zeros((3, 3), np.float32))
     np.savez(tmp_path / "nan.npz", vertices=np.array([[0, 0, 0], [1, 0, 0], [0, np.nan, 0]], np.float32),
              faces=np.array([[0, 1, 2]]))
+    (tmp_path / "engine.json").write_text('{"benchmark": "engine", "rows": []}')
     stand_ins = {"<free>": free_endpoint, "<not-npz>": lambda: str(tmp_path / "not.npz"),
+                 "<engine-json>": lambda: str(tmp_path / "engine.json"),
                  "<no-faces>": lambda: str(tmp_path / "no-faces.npz"), "<nan-vertex>": lambda: str(tmp_path / "nan.npz")}
     args = [stand_ins[arg]() if arg in stand_ins else arg for arg in args]
     done = subprocess.run([sys.executable, "-m", "badf.cli", *args], capture_output=True, text=True, timeout=120)

@@ -10,25 +10,9 @@ import time
 
 import pytest
 
-from conftest import free_endpoint, wait_until
+from conftest import free_endpoint, process_group_members, wait_until
 
 DEMO_TIMEOUT_S = 900  # includes the first kernel compilation on a 2-core machine
-
-
-def _group_members(pgid: int) -> list[int]:
-    """Process ids whose process group is `pgid` (Linux /proc)."""
-    members = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry}/stat") as handle:
-                fields = handle.read().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[2]) == pgid:  # fields after the name: state, ppid, pgrp
-            members.append(int(entry))
-    return members
 
 
 def _start(*args: str) -> subprocess.Popen:
@@ -50,7 +34,7 @@ def _finish(process: subprocess.Popen, timeout: float) -> str:
 
 
 def _assert_nothing_left(pgid: int) -> None:
-    wait_until(lambda: not _group_members(pgid), timeout=60, what=f"every process of the demo's group {pgid} to end")
+    wait_until(lambda: not process_group_members(pgid), timeout=60, what=f"every process of the demo's group {pgid} to end")
 
 
 @pytest.mark.parametrize("scene", ["morph", "cloth"])

@@ -26,3 +26,5 @@ def test_viewer_benchmark_runs(tmp_path: Path) -> None:
     assert all(timing["samples"] == 3 and timing["median_ms"] > 0 for timing in report["timings"])
     assert [f["what"] for f in report["following"]] == ["defaults (slices <= 20/s)", "lifted (1000/s)"]
     assert all(f["frames_streamed"] > 0 and f["slices_drawn"] > 0 for f in report["following"])
+    # the slices' accuracy against the float64 oracle, beside their times
+    assert report["accuracy"]["points"] == 1000 and 0 < report["accuracy"]["max_error_diag"] < 0.5
