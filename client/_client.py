@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import math
 import threading
+import weakref
 from typing import Sequence, TypeVar
 
 import numpy as np
@@ -57,6 +58,7 @@ from badf.protocol import (
     WorkerInfo,
     WorkerTimeoutError,
     WorkerUnavailableError,
+    check_sizes,
     decode,
     encode,
     error_for_code,
@@ -72,9 +74,11 @@ log = logging.getLogger("badf.client")
 class Client:
     """A connection to the badf workers behind a Zenoh router (by default the embedded one of `badf serve`).
 
-    Use as a context manager, or call `close()`. `timeout` (seconds) bounds connecting and is the default
-    for every call; `namespace` must match the workers'. `config_file` is a Zenoh JSON5 file (TLS,
-    authentication) used as the base configuration.
+    Use as a context manager, or call `close()` (clients still open when the interpreter exits are closed
+    then). `timeout` (seconds) bounds connecting and is the default for every call; `namespace` must match
+    the workers'. `config_file` is a Zenoh JSON5 file (TLS, authentication) used as the base configuration.
+    `limits` bound the replies taken and the requests sent: a request past them is refused before it goes
+    (the workers' defaults are the same).
     """
 
     def __init__(
@@ -118,10 +122,10 @@ class Client:
         self._liveliness = self._session.liveliness().declare_subscriber(
             self.keys.every_worker_token, self._on_liveliness, history=True
         )
+        _OPEN_CLIENTS.add(self)
 
     def __enter__(self) -> Client:
-        if self._session.is_closed():
-            raise WorkerUnavailableError("this client is closed; open a new Client")
+        self._check_open()
         return self
 
     def __exit__(self, *_exc: object) -> None:
@@ -286,6 +290,8 @@ class Client:
         cancellation: zenoh.CancellationToken | None = None,
     ) -> zenoh.Handler:
         seconds = self.timeout if timeout is None else timeout_seconds(timeout)
+        self._check_open()
+        check_sizes(request, self.limits)
         try:
             return self._session.get(
                 key,
@@ -390,8 +396,13 @@ class Client:
             raise
         return any(reply.ok is not None or _is_error_reply(reply.err.payload.to_bytes()) for reply in replies)
 
+    def _check_open(self) -> None:
+        if self._session.is_closed():
+            raise WorkerUnavailableError("this client is closed; open a new Client")
+
     def _put(self, key: str, payload: bytes) -> None:
         """Put through the key's publisher (declared on first use)."""
+        self._check_open()
         with self._publishing:
             publisher = self._publishers.get(key)
             if publisher is None:
@@ -484,14 +495,20 @@ class RemoteObject:
         `update()` waits for the worker's answer instead."""
         if self._deleted:
             raise ObjectNotFoundError(f"{self.name!r} was deleted through this handle; reregister() serves it again")
+        # a frame that fails to go uses up its number, as in update(), but is not kept for reregister(): a
+        # stream() that raised had made its vertices the ones reregister() put back (tenth outside check)
+        kept = self._vertices, self._vertices_frame
         frame = self._next_frame(vertices)
-        self._rejoin_if_back()
-        self._client._check_worker(self.worker, self.name, self._life)
-        key = self._client.keys.object_frame(self.name)
         try:
-            self._client._put(key, encode(frame))
-        except zenoh.ZError as error:
-            raise WorkerUnavailableError(f"cannot stream to {self.name!r}: {zenoh_message(error)}") from None
+            self._rejoin_if_back()
+            self._client._check_worker(self.worker, self.name, self._life)
+            check_sizes(frame, self._client.limits)
+            self._client._put(self._client.keys.object_frame(self.name), encode(frame))
+        except BaseException as error:
+            self._vertices, self._vertices_frame = kept
+            if isinstance(error, zenoh.ZError):
+                raise WorkerUnavailableError(f"cannot stream to {self.name!r}: {zenoh_message(error)}") from None
+            raise
         return frame.frame
 
     def query(
@@ -615,6 +632,20 @@ class RemoteObject:
 
     def _saw(self, frame: int) -> None:
         self._frame = max(self._frame, frame)
+
+
+# Clients not closed yet. At the interpreter's exit, before it waits for threads, they are closed: the
+# thread that Zenoh runs the liveliness callback on is one it waits for, so a script that never closed its
+# client did not exit (tenth outside check).
+_OPEN_CLIENTS: weakref.WeakSet[Client] = weakref.WeakSet()
+
+
+def _close_open_clients() -> None:
+    for client in list(_OPEN_CLIENTS):
+        client.close()
+
+
+threading._register_atexit(_close_open_clients)  # type: ignore[attr-defined]  # runs before the thread joins
 
 
 def _is_error_reply(data: bytes) -> bool:

@@ -67,6 +67,7 @@ from badf.protocol._messages import (
     SliceReply,
     SliceRequest,
     WorkerInfo,
+    check_sizes,
     decode,
     encode,
 )
@@ -140,6 +141,7 @@ __all__ = [
     "WrongKindError",
     "ZenohMode",
     "check_name",
+    "check_sizes",
     "decode",
     "encode",
     "error_for_code",

@@ -897,6 +897,15 @@ def encode(message: Message) -> bytearray:
     return pack(message.KIND, message.metadata(), [getattr(message, slot.name) for slot in message.SLOTS])
 
 
+def check_sizes(message: Message, limits: Limits) -> None:
+    """LimitExceededError where `message` carries more than `limits` allow, as its receiver would say: a
+    sender can tell before the bytes go (a 50 MB query one point over the limit went out to be refused)."""
+    shapes = [None if getattr(message, slot.name) is None else np.shape(getattr(message, slot.name))
+              for slot in message.SLOTS]  # fmt: skip
+    _check_shapes(type(message).__name__, message.SLOTS, shapes, limits)
+    message.check_limits(limits)
+
+
 def decode(data: bytes | bytearray, expect: type[M], *, limits: Limits = DEFAULT_LIMITS) -> M:
     """The message of type `expect` in `data`; raises a MessageError subclass saying what is wrong."""
     owner = expect.__name__

@@ -15,6 +15,7 @@ import os
 import signal
 import socket
 import threading
+import time
 from contextlib import ExitStack
 
 import numpy as np
@@ -40,12 +41,14 @@ BASE, FACES = cube(8)
 TOLERANCE = 1e-4  # float32 rounding of the exact distance; frame offsets are 0.01 apart
 
 
-def assert_holds_frame(obj: RemoteObject, frame: int) -> None:
-    """The object answers for `frame`, with that frame's (whole) geometry."""
+def assert_holds_frame(obj: RemoteObject, frame: int, geometry: int | None = None) -> None:
+    """The object answers for `frame`, with the (whole) geometry of frame_vertices(BASE, geometry), by default
+    that frame's own."""
+    geometry = frame if geometry is None else geometry
     reply = obj.query(PROBE, mode="exact")
     assert reply.frame == frame
-    assert abs(float(reply.distance[0]) - expected_probe_distance(frame)) <= TOLERANCE, (
-        f"frame {frame} answered {float(reply.distance[0])}, expected {expected_probe_distance(frame)}"
+    assert abs(float(reply.distance[0]) - expected_probe_distance(geometry)) <= TOLERANCE, (
+        f"frame {frame} answered {float(reply.distance[0])}, expected {expected_probe_distance(geometry)}"
     )
 
 
@@ -141,12 +144,14 @@ def test_a_killed_worker_gives_clear_errors_then_clients_register_again() -> Non
                     call()
         first_handle, second_handle = objects
         first_handle.reregister(timeout=60)  # the documented recovery, on the handle itself
-        assert first_handle.available and first_handle.frame >= acknowledged[first_handle.name]
-        assert_holds_frame(first_handle, first_handle.frame)
+        assert first_handle.available and first_handle.frame > acknowledged[first_handle.name]
+        # the last vertices that went (the acknowledged frame's), under a new number: the update and the
+        # stream that failed since used theirs up, and their vertices are not kept
+        assert_holds_frame(first_handle, first_handle.frame, geometry=acknowledged[first_handle.name])
         obj = second_handle  # or a new handle from what the old one kept
         again = client.register(obj.name, obj.vertices, obj.faces, frame=obj.frame, **obj.options.to_json())
-        assert again.frame == obj.frame >= acknowledged[obj.name]
-        assert_holds_frame(again, again.frame)
+        assert again.frame == obj.frame > acknowledged[obj.name]
+        assert_holds_frame(again, again.frame, geometry=acknowledged[obj.name])
         assert again.update(frame_vertices(BASE, again.frame + 1)) == obj.frame + 1
 
 
@@ -174,8 +179,19 @@ def test_a_stopping_worker_answers_the_request_in_progress_and_refuses_the_waiti
         threads = [threading.Thread(target=ask) for _ in range(4)]
         for thread in threads:
             thread.start()
-        wait_until(lambda: client.workers(timeout=30)[0].requests_waiting == 3, timeout=120,
-                   what="one query to run and the others to wait")  # fmt: skip
+        # three waiting can also be three queued while the object's thread refreshes its snapshot, the fourth
+        # still on its way and none running: then all four are refused, rightly (4 of about 45 runs, 2026-11-22).
+        # Three waiting for 0.2 s means one runs: each query takes seconds
+        streak = []
+
+        def one_running_three_waiting() -> bool:
+            if client.workers(timeout=30)[0].requests_waiting != 3:
+                streak.clear()
+                return False
+            streak.append(time.monotonic())
+            return streak[-1] - streak[0] >= 0.2
+
+        wait_until(one_running_three_waiting, timeout=120, what="one query to run and the others to wait")
         end_process(process)
         for thread in threads:
             thread.join(120)
