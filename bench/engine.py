@@ -18,6 +18,7 @@ import time
 import numpy as np
 
 from badf.bench._common import BenchFlagError, bench_device_name, deform, print_table, start_warp, timestamp
+from badf.bench._oracle import ORACLE_SAMPLE, errors_against, signed_distance
 from badf.server._mesh_files import MESH_HELP, read_mesh
 
 
@@ -119,21 +120,6 @@ def _measure_field(vertices, faces, *, device: str, repeat: int, options: dict, 
     }
 
 
-# Points of a benchmark's query checked against the float64 oracle: a sample, as the oracle takes seconds per
-# thousand points on a mesh of 70K triangles.
-ORACLE_SAMPLE = 1000
-
-
-def _oracle_errors(values: np.ndarray, points: np.ndarray, vertices, faces, diag: float) -> dict:
-    """Largest and mean |value - oracle's signed distance| in diagonals over the first ORACLE_SAMPLE points."""
-    from badf.bench._oracle import signed_distance
-
-    truth = signed_distance(points[:ORACLE_SAMPLE], vertices, faces)
-    error = np.abs(np.asarray(values[:ORACLE_SAMPLE], np.float64) - truth)
-    return {"max_error_diag": float(error.max() / diag), "mean_error_diag": float(error.mean() / diag),
-            "points": len(truth)}
-
-
 def measure_queries(field, vertices, faces, *, device: str, repeat: int, count: int = 65536) -> dict:
     """Timed ADF and exact queries of `count` points spread over the mesh's box, with each mode's error
     against the float64 oracle (winding-number sign) on a sample of them, and ADF's against exact on all."""
@@ -151,8 +137,9 @@ def measure_queries(field, vertices, faces, *, device: str, repeat: int, count: 
     out["query_points"] = count
     out["adf_vs_exact_max_error_diag"] = float(error.max() / diag)
     out["adf_vs_exact_mean_error_diag"] = float(error.mean() / diag)
+    truth = signed_distance(points[:ORACLE_SAMPLE], vertices, faces)
     for mode in ("adf", "exact"):
-        out[f"{mode}_vs_oracle"] = _oracle_errors(results[mode].distance, points, vertices, faces, diag)
+        out[f"{mode}_vs_oracle"] = errors_against(results[mode].distance[:ORACLE_SAMPLE], truth, vertices)
     return out
 
 
@@ -195,13 +182,12 @@ def measure_dense_baseline(vertices, faces, *, device: str, repeat: int, resolut
     picked = np.random.default_rng(0).choice(resolution**3, size=min(ORACLE_SAMPLE, resolution**3), replace=False)
     index = np.stack([picked // resolution**2, (picked // resolution) % resolution, picked % resolution], axis=1)
     at = ((lo + hi) / 2 - side / 2).astype(np.float64) + index * step  # as the kernel's points, in float64
-    diag = float(np.linalg.norm(hi - lo))
     return {
         "resolution": resolution,
         "build_ms": round(_median(builds), 4),
         "query_ms": round(_median(queries), 4),
         "grid_bytes": resolution**3 * 4,
-        "grid_vs_oracle": _oracle_errors(grid.numpy()[picked], at, vertices, faces, diag),
+        "grid_vs_oracle": errors_against(grid.numpy()[picked], signed_distance(at, vertices, faces), vertices),
     }
 
 

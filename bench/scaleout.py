@@ -152,21 +152,17 @@ def _phase(args: argparse.Namespace, devices: list[str], client_counts: list[int
 def _served_accuracy(client, names: list[str], vertices: np.ndarray, faces: np.ndarray) -> dict[str, Any]:
     """What the timed queries' answers are worth: the objects `names` (one per worker, as placement alternates),
     set to the mesh's own frame, answer a sample of points like the clients' against the float64 oracle."""
-    from badf.bench._oracle import bbox_diagonal, signed_distance
-    from badf.bench.engine import ORACLE_SAMPLE
+    from badf.bench._oracle import ORACLE_SAMPLE, errors_against, signed_distance
 
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     points = np.random.default_rng(0).uniform(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), size=(ORACLE_SAMPLE, 3))
     points = points.astype(np.float32)
-    truth = signed_distance(points, vertices, faces)
-    errors = []
+    answers = []
     for name in names:
         remote = client.object(name)
         remote.update(vertices)
-        errors.append(np.abs(remote.query(points).distance.astype(np.float64) - truth))
-    error = np.concatenate(errors) / bbox_diagonal(vertices)
-    return {"objects": len(names), "points": len(points), "max_error_diag": float(error.max()),
-            "mean_error_diag": float(error.mean())}
+        answers.append(remote.query(points).distance)
+    return {"objects": len(names), **errors_against(np.stack(answers), signed_distance(points, vertices, faces), vertices)}
 
 
 def _timed_run(args: argparse.Namespace, endpoint: str, client, names: list[str]) -> dict[str, Any]:

@@ -148,17 +148,13 @@ def _accuracy(field, remote, vertices: np.ndarray, faces: np.ndarray, points: np
     """What the timed answers are worth: the served distances of one frame against the float64 oracle (on a
     sample: the oracle takes seconds per thousand points on a large mesh), and whether they equal the
     in-process engine's."""
-    from badf.bench._oracle import bbox_diagonal, signed_distance
-    from badf.bench.engine import ORACLE_SAMPLE
+    from badf.bench._oracle import ORACLE_SAMPLE, errors_against, signed_distance
 
     sample = points[:ORACLE_SAMPLE]
     remote.update(vertices)
     field.update(vertices)
     served = remote.query(sample).distance
-    error = np.abs(served.astype(np.float64) - signed_distance(sample, vertices, faces))
-    diag = bbox_diagonal(vertices)
-    return {"points": len(sample), "mode": "adf", "max_error_diag": float(error.max() / diag),
-            "mean_error_diag": float(error.mean() / diag),
+    return {**errors_against(served, signed_distance(sample, vertices, faces), vertices), "mode": "adf",
             "service_equals_in_process": bool(np.array_equal(served, field.query(sample).distance))}
 
 

@@ -144,8 +144,7 @@ def run(args: argparse.Namespace) -> int:
 def _slice_accuracy(remote, vertices: np.ndarray, faces: np.ndarray, position: float, args) -> dict:
     """What the timed slices are worth: samples of one slice of `vertices` (the field's values at the grid's
     sample points, as SliceReply places them) against the float64 oracle."""
-    from badf.bench._oracle import bbox_diagonal, signed_distance
-    from badf.bench.engine import ORACLE_SAMPLE
+    from badf.bench._oracle import ORACLE_SAMPLE, errors_against, signed_distance
 
     remote.update(vertices)
     reply = remote.slice(args.axis, position, resolution=args.resolution)
@@ -159,9 +158,7 @@ def _slice_accuracy(remote, vertices: np.ndarray, faces: np.ndarray, position: f
     points[:, axis] = reply.position
     points[:, u_axis] = u_min + (column + 0.5) * (u_max - u_min) / columns
     points[:, v_axis] = v_min + (row + 0.5) * (v_max - v_min) / rows
-    error = np.abs(reply.grid[row, column].astype(np.float64) - signed_distance(points, vertices, faces))
-    diag = bbox_diagonal(vertices)
-    return {"points": len(picked), "max_error_diag": float(error.max() / diag), "mean_error_diag": float(error.mean() / diag)}
+    return errors_against(reply.grid[row, column], signed_distance(points, vertices, faces), vertices)
 
 
 def _round(value: float | None) -> float | str:
