@@ -400,9 +400,12 @@ class Client:
         if self._session.is_closed():
             raise WorkerUnavailableError("this client is closed; open a new Client")
 
-    def _put(self, key: str, payload: bytes) -> None:
-        """Put through the key's publisher (declared on first use)."""
+    def _put(self, key: str, message: Message) -> None:
+        """Put `message` through the key's publisher (declared on first use), checked against the limits as
+        `_get` checks a request."""
         self._check_open()
+        check_sizes(message, self.limits)
+        payload = encode(message)
         with self._publishing:
             publisher = self._publishers.get(key)
             if publisher is None:
@@ -502,8 +505,7 @@ class RemoteObject:
         try:
             self._rejoin_if_back()
             self._client._check_worker(self.worker, self.name, self._life)
-            check_sizes(frame, self._client.limits)
-            self._client._put(self._client.keys.object_frame(self.name), encode(frame))
+            self._client._put(self._client.keys.object_frame(self.name), frame)
         except BaseException as error:
             self._vertices, self._vertices_frame = kept
             if isinstance(error, zenoh.ZError):
