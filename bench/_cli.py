@@ -16,6 +16,7 @@ from badf.bench._common import BenchFlagError
 from badf.protocol import DEFAULT_LIMITS
 from badf.server._cuda import device_problem
 from badf.server._mesh_files import MeshFileError
+from badf.server._signals import on_stop_signals, stop_signals
 from badf.web_viewer._viewer import RESOLUTIONS
 
 _BENCHMARKS = {
@@ -57,17 +58,12 @@ def _stop_signals_as_ctrl_c() -> Iterator[None]:
     """SIGTERM and SIGHUP end a run as Ctrl-C does (KeyboardInterrupt), so the benchmarks' `finally` blocks
     end the workers and clients they started. Before, `bench service`, `soak`, `scaleout` and `viewer` died at
     once on either and left them running on their ports (outside check, 2026-11-22). The handlers before
-    are put back afterwards (the benchmarks also run inside other programs, tests among them); a SIGHUP
-    already ignored (nohup) stays ignored."""
+    are put back afterwards (the benchmarks also run inside other programs, tests among them)."""
     if threading.current_thread() is not threading.main_thread():
         yield  # only the main thread may set handlers; a caller on another thread keeps its own
         return
-    taken = [signal.SIGTERM]
-    if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:
-        taken.append(signal.SIGHUP)
-    before = {signum: signal.getsignal(signum) for signum in taken}
-    for signum in taken:
-        signal.signal(signum, signal.default_int_handler)
+    before = {signum: signal.getsignal(signum) for signum in stop_signals()}
+    on_stop_signals(signal.default_int_handler)
     try:
         yield
     finally:
