@@ -1154,6 +1154,52 @@ def test_adf_normals_on_the_lattice_by_a_medial_axis_are_unit(device, sign):
     assert np.einsum("ij,ij->i", got.normal[clear], direction).min() > 0.0
 
 
+def _descents(points, normal, vertices, faces, step):
+    """How many normals point where the oracle's signed distance falls: a step along them goes deeper."""
+    before = oracle.signed_distance(points, vertices, faces)
+    after = oracle.signed_distance(points + step * normal.astype(np.float64), vertices, faces)
+    return int(np.count_nonzero(after - before < 0.0))
+
+
+@pytest.mark.parametrize("sign", ["auto", "winding"])
+@pytest.mark.parametrize("depth", [4, 5, 6, 7])
+def test_adf_normals_inside_a_sharp_edge_point_out(device, sign, depth):
+    """Inside a cone's base rim the medial surface crosses leaves whose corners took their values from the
+    base and the side: the trilinear gradient there pointed away from the surface, so a penalty force along
+    it pushed deeper (10 to 40 of 2,000 points within two cells of the rim, depths 4 to 7; tenth outside
+    check, 2026-11-22). In a leaf whose corners' faces face apart the normal is now exact mode's; the
+    distance stays the interpolation's."""
+    cone = trimesh.creation.cone(radius=0.4, height=0.5, sections=24)
+    vertices, faces = np.asarray(cone.vertices), np.asarray(cone.faces)
+    field = DistanceField(vertices, faces, depth=depth, sign=sign, device=device)
+    cell = field.info()["domain"]["finest_cell"]
+    rng = np.random.default_rng(depth)
+    around = rng.random(2000) * 2.0 * np.pi
+    offset = rng.normal(size=(2000, 3))
+    offset *= (2.0 * cell * rng.random(2000) ** (1.0 / 3.0) / np.linalg.norm(offset, axis=1))[:, None]
+    rim = np.stack([0.4 * np.cos(around), 0.4 * np.sin(around), np.full(2000, vertices[:, 2].min())], axis=1)
+    points = rim + offset
+    got = field.query(points, mode="adf", outputs=("distance", "normal"))
+    alone = field.query(points, mode="adf", outputs=("distance",))
+    np.testing.assert_array_equal(got.distance, alone.distance)  # the normal changes no distance
+    np.testing.assert_allclose(np.linalg.norm(got.normal, axis=1), 1.0, atol=1e-4)
+    assert _descents(points, got.normal, vertices, faces, 0.05 * cell) == 0
+
+
+def test_adf_normals_near_a_cad_parts_edges_point_out(device):
+    """fandisk, a part with sharp edges, at depth 6: of 5,000 points about a cell from its surface, some had
+    ADF normals along which the signed distance falls (inside its edges, and two to three cells deep, where
+    the leaves are coarser); none now."""
+    vertices, faces = meshes.load("fandisk")
+    field = DistanceField(vertices, faces, depth=6, device=device)
+    cell = field.info()["domain"]["finest_cell"]
+    rng = np.random.default_rng(7)
+    points = meshes.surface_samples(vertices, faces, 1, rng)
+    points = points[rng.choice(len(points), 5000, replace=False)] + rng.normal(size=(5000, 3)) * cell
+    got = field.query(points, mode="adf", outputs=("normal",))
+    assert _descents(points, got.normal, vertices, faces, 0.05 * cell) == 0
+
+
 @pytest.mark.parametrize("sign", ["auto", "pseudonormal", "winding"])
 def test_exact_normals_on_a_frame_turned_inside_out_point_outward(device, sign):
     """A sphere updated to its mirror image (its faces then wind inwards; the frame is signed by winding

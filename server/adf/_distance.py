@@ -61,6 +61,14 @@ _SURFACE_SNAP = wp.constant(SURFACE_SNAP)
 # An ADF gradient shorter than this (a distance field's has length 1) has lost its direction: the point
 # is answered exactly instead
 _WEAK_GRADIENT = wp.constant(0.01)
+# A leaf whose corners' nearest faces face apart (inside a sharp edge, wherever the medial surface runs
+# through it) has a trilinear gradient that can point anywhere, away from the surface too. Each corner's
+# face gives a direction (its unit normal turned towards the corner and signed by the corner's value: the
+# field's gradient there, where the face's interior is nearest); two corners whose directions are more
+# than 90 degrees apart mark the leaf (mark_medial_leaves), in bit MEDIAL_SHIFT + o of its parent's child mask
+# (o: its octant), above the bits of the children present
+MEDIAL_SHIFT = 8
+_MEDIAL_SHIFT = wp.constant(MEDIAL_SHIFT)
 # How far (in domain sides) off the surface an on-surface exact normal looks for the winding numbers' inside
 _SIDE_STEP = wp.constant(16.0 * SURFACE_SNAP)
 
@@ -74,6 +82,8 @@ _OUT_DISTANCE = wp.constant(OUT_DISTANCE)
 _OUT_CLOSEST = wp.constant(OUT_CLOSEST)
 _OUT_NORMAL = wp.constant(OUT_NORMAL)
 _OUT_FACE = wp.constant(OUT_FACE)
+
+_Vec27 = wp.types.vector(length=27, dtype=wp.float32)
 
 # Threads per block of the corner searches and the corner signs (each thread walks the BVH with a stack
 # of its own), and registers per thread. `badf bench engine --kernels --block-sweep --register-sweep` times
@@ -519,6 +529,73 @@ def _nearest_corner_face(tree: OctreeView, corner_leaf: wp.array(dtype=wp.int32)
 
 
 @wp.func
+def _corner_direction(bvh: BvhView, leaf: int, value: float, q: wp.vec3) -> wp.vec3:
+    """The unit normal of lattice point q's nearest face (sorted leaf `leaf`), turned to point from the face
+    towards q and signed by q's value; zero where there is none (no face within the band, a degenerate face,
+    q on its plane)."""
+    if leaf < 0:
+        return wp.vec3(0.0)
+    a, b, c = leaf_triangle(bvh, leaf)
+    n = wp.cross(b - a, c - a)
+    length = wp.length(n)
+    side = wp.dot(q - a, n)
+    if length == 0.0 or side == 0.0:
+        return wp.vec3(0.0)
+    return wp.where((value < 0.0) != (side < 0.0), -1.0, 1.0) * n / length
+
+
+@wp.kernel(enable_backward=False)
+def mark_medial_leaves(
+    node_keys: wp.array(dtype=wp.int64),
+    totals: wp.array(dtype=wp.int32),
+    internal_capacity: int,
+    tree: OctreeView,
+    corner_value: wp.array(dtype=wp.float32),
+    corner_leaf: wp.array(dtype=wp.int32),
+    bvh: BvhView,
+    child_mask: wp.array(dtype=wp.int32),
+):
+    """Mark each child of an internal node that has two corners whose directions (_corner_direction) are more
+    than 90 degrees apart, in the node's child mask (bit _MEDIAL_SHIFT + octant; a child that is itself a
+    node is marked too, and never read). One thread per internal node; its 27 lattice points' directions are
+    worked out once each."""
+    node = wp.tid()
+    if node >= wp.min(totals[1], internal_capacity):
+        return
+    key = node_keys[node]
+    level = int(key >> wp.int64(32))
+    parent = morton3_decode(key & wp.int64(0xFFFFFFFF))
+    child = tree.cell * float(1 << (tree.depth - level - 1))  # a child's side
+    base = tree.origin + 2.0 * child * wp.vec3(float(parent[0]), float(parent[1]), float(parent[2]))
+    xs = _Vec27()
+    ys = _Vec27()
+    zs = _Vec27()
+    for point in range(27):
+        slot = tree.corner_slot[node * 27 + point]
+        q = base + child * wp.vec3(float(point // 9), float((point // 3) % 3), float(point % 3))
+        direction = _corner_direction(bvh, corner_leaf[slot], corner_value[slot], q)
+        xs[point] = direction[0]
+        ys[point] = direction[1]
+        zs[point] = direction[2]
+    marks = int(0)
+    for octant in range(8):
+        ox = (octant >> 2) & 1
+        oy = (octant >> 1) & 1
+        oz = octant & 1
+        apart = False
+        for corner in range(8):
+            point = (ox + ((corner >> 2) & 1)) * 9 + (oy + ((corner >> 1) & 1)) * 3 + oz + (corner & 1)
+            u = wp.vec3(xs[point], ys[point], zs[point])
+            for other in range(corner):
+                pair = (ox + ((other >> 2) & 1)) * 9 + (oy + ((other >> 1) & 1)) * 3 + oz + (other & 1)
+                if wp.dot(u, wp.vec3(xs[pair], ys[pair], zs[pair])) < 0.0:
+                    apart = True
+        if apart:
+            marks |= 1 << octant
+    child_mask[node] = (child_mask[node] & 255) | (marks << _MEDIAL_SHIFT)
+
+
+@wp.func
 def _winds_inward(bvh: BvhView, leaf: int, inv_side: float) -> bool:
     """Whether `leaf`'s face winds inwards by the winding numbers: |w| is larger a step along its normal
     from its centroid than a step against it. Looked at from the centroid, not from a point on the face's
@@ -837,6 +914,51 @@ def _make_query_kernel(method: int) -> wp.Kernel:
     winding = method == SIGN_WINDING
     unsigned = not (pseudonormal or winding)
 
+    def inside_at(bvh: BvhView, sign: SignView, p: wp.vec3, face: int, closest: wp.vec3, feature: int,
+                  in_domain: bool) -> bool:
+        """The sign method's inside, for a point whose nearest face and closest point are known. Outside the
+        domain (which holds the whole mesh) a point is outside a closed mesh; winding numbers are taken there
+        too, as a soup of overlapping triangles can reach |w| > 1/2 beyond its bounding box."""
+        inside = False
+        if wp.static(winding):
+            inside = inside_by_winding(bvh, p)
+        if wp.static(pseudonormal):
+            if in_domain:
+                inside = inside_by_pseudonormal(sign, bvh, p, face, closest, feature)
+        return inside
+
+    def exact_normal(tree: OctreeView, corner_leaf: wp.array(dtype=wp.int32), node: int, octant: int,
+                     bvh: BvhView, sign: SignView, p: wp.vec3, leaf: int, closest: wp.vec3, feature: int,
+                     inside: bool, inv_side: float) -> wp.vec3:
+        """The gradient of the signed distance at p, whose nearest face is `leaf`'s: away from the surface
+        outside, towards it (outward) inside; on the surface (within float32's rounding of it), the closest
+        feature's normal."""
+        offset = p - closest
+        length = wp.length(offset)
+        if length * inv_side > _SURFACE_SNAP:
+            n = offset / length
+            if inside:
+                n = -n
+            return n
+        n = wp.vec3(0.0)
+        oriented = leaf
+        if wp.static(pseudonormal):
+            a, b, c = leaf_triangle(bvh, leaf)
+            n = feature_normal(sign, bvh.leaf_face[leaf], feature_on_surface(closest, a, b, c, feature))
+        if wp.length_sq(n) == 0.0:
+            n, oriented = _surface_normal(tree, corner_leaf, node, octant, bvh, p, leaf)
+        by_winding = wp.static(winding)
+        if wp.static(pseudonormal):
+            by_winding = sign.winding_frame[0] != 0  # a frame inside out, flat, or overlapping itself
+        if by_winding:
+            # outward for the winding numbers' inside, whichever way the face winds
+            if _winds_inward(bvh, oriented, inv_side):
+                n = -n
+        return n
+
+    inside_at = wp.func(inside_at, module="unique")
+    exact_normal = wp.func(exact_normal, module="unique")
+
     def query_points(
         points: wp.array(dtype=wp.vec3),
         offset: wp.vec3,
@@ -946,6 +1068,21 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                             unit = away / away_length
                         else:
                             unit, _used = _surface_normal(tree, corner_leaf, node, octant, bvh, p, near_leaf)
+                if wp.static(not unsigned):
+                    # inside a sharp edge (wherever the medial surface runs) a leaf's corners took their values from
+                    # faces that face apart, and the trilinear gradient there can point away from the surface: a
+                    # penalty force along it pushes deeper. In such a leaf (marked by mark_medial_leaves) the normal
+                    # is exact mode's. The distance and face stay the interpolation's, so no output depends on which
+                    # others are asked for
+                    if (outputs & (_OUT_NORMAL | _OUT_CLOSEST)) != 0 and not beyond:
+                        if (tree.child_mask[node] >> (_MEDIAL_SHIFT + octant)) & 1 != 0:
+                            seed_leaf = _nearest_corner_face(tree, corner_leaf, node, octant, bvh, p)
+                            near_leaf, _near_sq, _done = _nearest_with_band(bvh, p, seed_leaf, 0.0, UNLIMITED_VISITS)
+                            a, b, c = leaf_triangle(bvh, near_leaf)
+                            foot, feature = closest_point_on_triangle(p, a, b, c)
+                            inside = inside_at(bvh, sign, p, bvh.leaf_face[near_leaf], foot, feature, True)
+                            unit = exact_normal(tree, corner_leaf, node, octant, bvh, sign, p, near_leaf, foot,
+                                                feature, inside, inv_side)
                 # where a leaf's corners have their nearest points on opposite sides (a medial axis runs through
                 # it) the interpolated gradient can shrink to nothing: points on the lattice there had a zero
                 # normal and themselves as closest point. Such a point is answered exactly (whatever outputs
@@ -975,9 +1112,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
             seed = spatial_seed(bvh, p, tree.origin, inv_side)
 
         leaf, best_sq, finished = _nearest_with_band(bvh, p, seed, band, UNLIMITED_VISITS)
-        # outside the domain (which holds the whole mesh) a point is outside a closed mesh; winding numbers are
-        # taken there too, as a soup of overlapping triangles can reach |w| > 1/2 beyond its bounding box
-        if leaf < 0:
+        if leaf < 0:  # nothing within the band: +-band, by the winding number (no face to take a pseudonormal of)
             inside = False
             if wp.static(winding):
                 inside = inside_by_winding(bvh, p)
@@ -996,39 +1131,13 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         a, b, c = leaf_triangle(bvh, leaf)
         closest, feature = closest_point_on_triangle(p, a, b, c)
         face = bvh.leaf_face[leaf]
-        offset = p - closest
         d = wp.sqrt(best_sq)
-        inside = False
-        if wp.static(winding):
-            inside = inside_by_winding(bvh, p)
-        if wp.static(pseudonormal):
-            if in_domain:
-                inside = inside_by_pseudonormal(sign, bvh, p, face, closest, feature)
+        inside = inside_at(bvh, sign, p, face, closest, feature, in_domain)
         if outputs & _OUT_DISTANCE:
             out_distance[i] = wp.where(inside, -d, d)
         if outputs & _OUT_NORMAL:
-            # gradient of the signed distance: away from the surface outside, towards it (outward) inside;
-            # on the surface (within float32's rounding of it), the closest feature's normal
-            n = wp.vec3(0.0)
-            length = wp.length(offset)
-            if length * inv_side > _SURFACE_SNAP:
-                n = offset / length
-                if inside:
-                    n = -n
-            else:
-                oriented = leaf
-                if wp.static(pseudonormal):
-                    n = feature_normal(sign, face, feature_on_surface(closest, a, b, c, feature))
-                if wp.length_sq(n) == 0.0:
-                    n, oriented = _surface_normal(tree, corner_leaf, node, octant, bvh, p, leaf)
-                by_winding = wp.static(winding)
-                if wp.static(pseudonormal):
-                    by_winding = sign.winding_frame[0] != 0  # a frame inside out, flat, or overlapping itself
-                if by_winding:
-                    # outward for the winding numbers' inside, whichever way the face winds
-                    if _winds_inward(bvh, oriented, inv_side):
-                        n = -n
-            out_normal[i] = n
+            out_normal[i] = exact_normal(tree, corner_leaf, node, octant, bvh, sign, p, leaf, closest, feature,
+                                         inside, inv_side)
         if outputs & _OUT_CLOSEST:
             out_closest[i] = closest
         if outputs & _OUT_FACE:

@@ -17,7 +17,14 @@ import warp as wp
 from badf.server.adf._buffers import DeviceBuffers, SideStream
 from badf.server.adf._bvh import Bvh
 from badf.server.adf._clock import StageClock
-from badf.server.adf._distance import OUTPUT_BITS, CornerField, PointQuery
+from badf.server.adf._distance import (
+    OUT_CLOSEST,
+    OUT_NORMAL,
+    OUTPUT_BITS,
+    CornerField,
+    PointQuery,
+    mark_medial_leaves,
+)
 from badf.server.adf._inputs import (
     MAX_COORDINATE,
     QUERY_MODES,
@@ -411,6 +418,8 @@ class DistanceField:
         domain = self._domain
         tree = self._octree.view(domain.origin, domain.local_side)
         bvh, sign = self._bvh.view(), self._normals.view()
+        if mode == "adf" and bits & (OUT_CLOSEST | OUT_NORMAL) and self._sign != "none":
+            self._mark_medial_leaves(tree, bvh)
         band = domain.local_band(self._band)
         # float32 points are recentred on the device (the same float32 arithmetic); float64 ones on the host
         # in float64, which keeps the precision of points far from the origin
@@ -574,6 +583,19 @@ class DistanceField:
             "memory_bytes": self._buffers.nbytes_by_role(),
         }
 
+    def _mark_medial_leaves(self, tree, bvh) -> None:
+        """Mark the leaves whose corners' nearest faces face apart (mark_medial_leaves), where an ADF normal is
+        exact mode's: once a frame, for its first ADF query that asks for normals or closest points, so that
+        frames queried for distances alone (and unsigned fields, which have a rule of their own) pay nothing."""
+        if self._medial_marked:
+            return
+        o = self._octree
+        wp.launch(mark_medial_leaves, dim=o.internal_capacity,
+                  inputs=[o.node_keys, o.totals, o.internal_capacity, tree, self._corners.value, self._corners.leaf,
+                          bvh],
+                  outputs=[o.child_mask], device=self._device)
+        self._medial_marked = True
+
     # -- the pipeline ---------------------------------------------------------------------------------
     def _apply(self, local_vertices: np.ndarray, extent: float, *, domain_moved: bool, recentre: bool = False) -> None:
         """Upload a frame and rebuild the field: refit (or rebuild, when the domain moved), sign data,
@@ -588,6 +610,7 @@ class DistanceField:
         object's larger sort would otherwise reallocate.
         """
         wall = time.perf_counter()
+        self._medial_marked = False  # the leaves the medial surface crosses, marked on demand (query)
         clock = self._clock
         clock.reset()
         stream = wp.ScopedStream(self._stream) if self._stream is not None else contextlib.nullcontext()
