@@ -52,6 +52,7 @@ from badf.protocol import (
     WorkerBusyError,
     decode,
 )
+from badf.server._memory import release_freed_memory
 from badf.server._replies import answer, engine_errors, refuse, request_bytes
 
 log = logging.getLogger("badf.server")
@@ -349,6 +350,10 @@ class ServedObject:
             if request is not None:
                 request.run()
         self._fail_waiting()
+        # nothing runs on the field once this thread ends: its memory goes now (not when the last reference to
+        # this object does), and the C library is asked to hand it back
+        self._field = None  # type: ignore[assignment]
+        release_freed_memory()
 
     def _has_work(self) -> bool:
         return bool(self._pending or self._waiting or self._closing)
