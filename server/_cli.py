@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from badf.cli._extras import missing_extra
 from badf.protocol import DEFAULT_ENDPOINT, BadfError
 from badf.server._cuda import NoCudaDeviceError, parse_gpus, requested_gpus, visible_cuda_device_count
 from badf.server._router import RouterSettings
@@ -86,6 +87,10 @@ def router_settings_from(args: argparse.Namespace) -> RouterSettings:
 
 
 def run(args: argparse.Namespace) -> int:
+    missing = None if args.router_only else missing_extra("badf serve", ("warp",), "server")
+    if missing is not None:
+        print(missing, file=sys.stderr)
+        return 2
     try:
         if args.router_only:
             router = router_settings_from(args)
