@@ -63,6 +63,13 @@ def run(args: argparse.Namespace) -> int:
         return 130
 
 
+def main_of(name: str) -> int:
+    """`python -m badf.bench.NAME [flags]`, each benchmark's main(): the run `badf bench NAME [flags]` makes,
+    flag checks, one-line errors and stop signals included (the modules parsed their flags and ran on their
+    own, so `--seconds 0` ran and a missing --mesh file was a traceback; eleventh outside check)."""
+    return run(argparse.Namespace(name=name, rest=sys.argv[1:]))
+
+
 @contextmanager
 def _stop_signals_as_ctrl_c() -> Iterator[None]:
     """SIGTERM and SIGHUP end a run as Ctrl-C does (KeyboardInterrupt), so the benchmarks' `finally` blocks

@@ -140,6 +140,27 @@ def test_a_missing_extra_is_one_line_naming_it(absent: str, args: list[str], mes
     _assert_one_clear_line(done, message)
 
 
+# `python -m badf.bench.NAME`, documented as `badf bench NAME`, parsed its flags and ran on its own: no flag
+# checks, a traceback for a missing file, no SIGTERM handling (eleventh outside check).
+PYTHON_M_BENCH = [
+    ("soak", ["--seconds", "0"], "badf bench soak: --seconds must be a positive finite number, got 0.0"),
+    ("service", ["--small", "--mesh", "/nonexistent/nothere.npz"], "badf bench service: /nonexistent/nothere.npz"),
+    ("engine", ["--quick", "--mesh", "<no-faces>", "--depth", "0"], "--depth must be in 1..10, got 0"),
+    ("viewer", ["--small", "--mesh", "<no-faces>", "--stream-fps", "0"], "--stream-fps must be a positive"),
+    ("scaleout", ["--small", "--mesh", "<no-faces>", "--seconds", "nan"], "--seconds must be a positive"),
+    ("accuracy", ["--no-stability", "--meshes", "spot", "--depths", "0"], "--depths must be in 1..10"),
+]
+
+
+@pytest.mark.parametrize(("name", "args", "message"), PYTHON_M_BENCH, ids=[name for name, _, _ in PYTHON_M_BENCH])
+def test_python_m_bench_runs_as_badf_bench(name: str, args: list[str], message: str, tmp_path) -> None:
+    np.savez(tmp_path / "no-faces.npz", vertices=np.zeros((3, 3), np.float32))
+    args = [str(tmp_path / "no-faces.npz") if arg == "<no-faces>" else arg for arg in args]
+    done = subprocess.run([sys.executable, "-m", f"badf.bench.{name}", *args], capture_output=True, text=True,
+                          cwd=tmp_path, timeout=120)
+    _assert_one_clear_line(done, message)
+
+
 def test_a_worker_that_cannot_reach_its_router_says_where_it_looked() -> None:
     """A worker joining a router nobody runs was told "is the port taken?", which pointed at a port it
     does not take; it now names the router it could not reach."""
