@@ -38,10 +38,10 @@ CASES = [
      "--points must be in 1..4194304, got 5000000"),
     (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--device", "gpu9"], "--device 'gpu9' is not a device"),
     (["demo", "--frames", "1", "--listen", "<free>", "--host", "999.9.9.9"], "--host: cannot serve the page on host"),
-    (["serve", "--listen", "<free>", "--worker-id", ""], "worker id must be 1 to 100 characters"),
+    (["serve", "--listen", "<free>", "--worker-id", ""], "--worker-id must be 1 to 100 characters"),
     (["serve", "--router-only", "--listen", "<free>", "--stats-interval", "-5"], "--stats-interval must be a positive"),
-    (["serve", "--listen", "<free>", "--stats-interval", "nan"], "stats_interval_s must be a positive finite number"),
-    (["serve", "--listen", "<free>", "--stats-interval", "inf"], "stats_interval_s must be a positive finite number"),
+    (["serve", "--listen", "<free>", "--stats-interval", "nan"], "--stats-interval must be a positive finite number"),
+    (["serve", "--listen", "<free>", "--stats-interval", "inf"], "--stats-interval must be a positive finite number"),
     (["serve", "--listen", "<free>", "--stats-interval", "1e-9"], "in 0.1..1e6, got 1e-09"),
     (["serve", "--listen", "<free>", "--stats-interval", "1e300"], "in 0.1..1e6, got 1e+300"),
     (["bench", "engine", "--quick", "--mesh", "<no-faces>", "--out", "/tmp"], "--out: '/tmp' is a folder"),
@@ -77,6 +77,14 @@ CASES = [
      "badf demo cloth: --mesh is for the morph scene"),
     (["demo", "cloth", "--no-viewer", "--frames", "1", "--listen", "<free>", "--points", "10"], "--points is for the morph"),
     (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--stiff"], "badf demo morph: --stiff is for the cloth"),
+    # errors named the settings' fields (stats_interval_s, max_slice_hz), not the flags (eleventh outside check)
+    (["serve", "--listen", "<free>", "--stats-interval", "0"], "badf serve: --stats-interval must be a positive"),
+    (["view", "--connect", "<free>", "--max-slice-hz", "0"], "badf view: --max-slice-hz must be a finite positive"),
+    (["view", "--connect", "<free>", "--max-mesh-hz", "-1"], "badf view: --max-mesh-hz must be a finite positive"),
+    (["view", "--connect", "<free>", "--max-info-hz", "nan"], "badf view: --max-info-hz must be a finite positive"),
+    (["view", "--connect", "<free>", "--port", "70000"], "badf view: --port must be an integer in 0..65535"),
+    (["view", "--connect", "<free>", "--timeout", "0"], "badf view: --timeout must be a positive number"),
+    (["view", "--connect", "<free>", "--object", "a/b"], "badf view: --object must be 1 to 100 characters"),
 ]
 
 
