@@ -13,6 +13,7 @@ from contextlib import contextmanager
 from typing import Iterator
 
 from badf.bench._common import BenchFlagError
+from badf.cli._extras import missing_extra
 from badf.protocol import DEFAULT_LIMITS
 from badf.server._cuda import device_problem
 from badf.server._mesh_files import MeshFileError
@@ -30,6 +31,11 @@ _BENCHMARKS = {
              "checked"),
 }
 
+# What the benchmarks import beyond the client (all of it in badf[bench]), checked before a run starts: it
+# was a traceback, and for accuracy's plots (matplotlib) one after the whole run.
+_NEEDS = ("warp", "trimesh")
+_NEEDS_MORE = {"accuracy": ("tqdm", "matplotlib")}
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("name", choices=sorted(_BENCHMARKS), help="; ".join(f"{k}: {v[1]}" for k, v in _BENCHMARKS.items()))
@@ -41,6 +47,10 @@ def run(args: argparse.Namespace) -> int:
     sub = argparse.ArgumentParser(prog=f"badf bench {args.name}", description=_BENCHMARKS[args.name][1])
     module.add_arguments(sub)
     flags = sub.parse_args(args.rest)
+    missing = missing_extra(f"badf bench {args.name}", _NEEDS + _NEEDS_MORE.get(args.name, ()), "bench")
+    if missing is not None:
+        print(missing, file=sys.stderr)
+        return 2
     try:
         check_flags(flags)
         with _stop_signals_as_ctrl_c():
@@ -51,6 +61,13 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print(f"\nbadf bench {args.name}: stopped before the end", file=sys.stderr)
         return 130
+
+
+def main_of(name: str) -> int:
+    """`python -m badf.bench.NAME [flags]`, each benchmark's main(): the run `badf bench NAME [flags]` makes,
+    flag checks, one-line errors and stop signals included (the modules parsed their flags and ran on their
+    own, so `--seconds 0` ran and a missing --mesh file was a traceback; eleventh outside check)."""
+    return run(argparse.Namespace(name=name, rest=sys.argv[1:]))
 
 
 @contextmanager

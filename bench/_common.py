@@ -36,7 +36,8 @@ def find_mesh(name: str) -> pathlib.Path:
         path = folder / f"{name}.npz"
         if path.exists():
             return path
-    raise FileNotFoundError(f"{name}.npz is in none of {', '.join(map(str, mesh_folders()))}")
+    raise FileNotFoundError(f"{name}.npz is in none of {', '.join(map(str, mesh_folders()))}; "
+                            "set BADF_SHARED_DATA to a folder that holds it")
 
 
 def deform(vertices: np.ndarray, t: float, amplitude: float = 0.01) -> np.ndarray:

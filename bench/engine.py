@@ -705,9 +705,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    add_arguments(parser)
-    return run(parser.parse_args())
+    from badf.bench._cli import main_of
+
+    return main_of("engine")
 
 
 if __name__ == "__main__":

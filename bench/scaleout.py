@@ -316,9 +316,9 @@ def _wait_for(condition, timeout_s: float, what: str) -> None:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    add_arguments(parser)
-    return run(parser.parse_args())
+    from badf.bench._cli import main_of
+
+    return main_of("scaleout")
 
 
 if __name__ == "__main__":

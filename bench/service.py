@@ -282,9 +282,9 @@ def _free_endpoint() -> str:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    add_arguments(parser)
-    return run(parser.parse_args())
+    from badf.bench._cli import main_of
+
+    return main_of("service")
 
 
 if __name__ == "__main__":

@@ -545,9 +545,9 @@ def print_summary(report: SoakReport) -> None:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    add_arguments(parser)
-    return run(parser.parse_args())
+    from badf.bench._cli import main_of
+
+    return main_of("soak")
 
 
 if __name__ == "__main__":

@@ -399,9 +399,9 @@ def _worker(device: str) -> Iterator[str]:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    add_arguments(parser)
-    return run(parser.parse_args())
+    from badf.bench._cli import main_of
+
+    return main_of("viewer")
 
 
 if __name__ == "__main__":

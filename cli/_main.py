@@ -4,6 +4,8 @@ import argparse
 import importlib
 import sys
 
+from badf.cli._extras import not_installed
+
 # subcommand -> (module that provides `add_arguments(parser)` and `run(args) -> int`, extra that installs it)
 _SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "serve": ("badf.server._cli", "server", "run a distance-field worker (and, by default, the Zenoh router)"),
@@ -21,9 +23,8 @@ def _load(name: str):
         missing = error.name or "a dependency"
         if missing.startswith("badf."):
             raise SystemExit(f"badf {name}: not built yet ({module_name} is missing)") from None
-        raise SystemExit(
-            f"badf {name} needs {missing!r}, which is not installed; install it with: pip install 'badf[{extra}]'"
-        ) from None
+        print(not_installed(f"badf {name}", missing, extra), file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 def main(argv: list[str] | None = None) -> int:

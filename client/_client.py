@@ -683,13 +683,13 @@ def _worker_gone_error(worker: str, name: str | None, *, seen_going: bool, back:
 MAX_TIMEOUT_S = 1.0e6
 
 
-def timeout_seconds(timeout: object) -> float:
+def timeout_seconds(timeout: object, *, what: str = "timeout") -> float:
     """A timeout as float seconds: a positive number up to MAX_TIMEOUT_S, else InvalidOptionError (a
     ValueError and a BadfError) saying what came (1e300 was a raw Zenoh error with Rust source paths, 1e20 a
-    "negative timeout")."""
+    "negative timeout"); `what` names it there (a command line's flag)."""
     is_number = isinstance(timeout, (int, float, np.integer, np.floating)) and not isinstance(timeout, bool)
     if not (is_number and math.isfinite(timeout) and 0 < timeout <= MAX_TIMEOUT_S):  # type: ignore[operator]
-        raise InvalidOptionError(f"timeout must be a positive number of seconds up to {MAX_TIMEOUT_S:g}, got {timeout!r}")
+        raise InvalidOptionError(f"{what} must be a positive number of seconds up to {MAX_TIMEOUT_S:g}, got {timeout!r}")
     return float(timeout)  # type: ignore[arg-type]
 
 

@@ -7,7 +7,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from badf.protocol import DEFAULT_ENDPOINT, BadfError
+from badf.cli._extras import missing_extra
+from badf.protocol import DEFAULT_ENDPOINT, BadfError, check_name
 from badf.server._cuda import NoCudaDeviceError, parse_gpus, requested_gpus, visible_cuda_device_count
 from badf.server._router import RouterSettings
 from badf.server._run import exit_now, run_gpu_workers, run_router, run_worker
@@ -60,6 +61,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def settings_from(args: argparse.Namespace) -> WorkerSettings:
+    # checked under the flags' names first: the settings name their fields ("stats_interval_s must be ...")
+    check_stats_interval(args.stats_interval, "--stats-interval")
+    if args.worker_id is not None:
+        check_name(args.worker_id, what="--worker-id")
     return WorkerSettings(
         worker_id=default_worker_id() if args.worker_id is None else args.worker_id,
         namespace=args.namespace,
@@ -86,6 +91,10 @@ def router_settings_from(args: argparse.Namespace) -> RouterSettings:
 
 
 def run(args: argparse.Namespace) -> int:
+    missing = None if args.router_only else missing_extra("badf serve", ("warp",), "server")
+    if missing is not None:
+        print(missing, file=sys.stderr)
+        return 2
     try:
         if args.router_only:
             router = router_settings_from(args)

@@ -20,6 +20,7 @@ from contextlib import ExitStack
 
 import numpy as np
 
+from badf.cli._extras import missing_extra
 from badf.protocol import DEFAULT_ENDPOINT, DEFAULT_LIMITS, MAX_NAME_LENGTH, BadfError, InvalidOptionError, zenoh_config
 from badf.server._cuda import device_problem
 from badf.server._mesh_files import MeshFileError, read_frames, read_mesh
@@ -55,6 +56,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # before anything starts: without viser the worker was started, then the viewer died in a traceback
+    missing = missing_extra("badf demo", ("warp", "trimesh"), "server")
+    viewer_missing = None if args.no_viewer else missing_extra("badf demo", ("viser",), "viewer")
+    if missing is None and viewer_missing is not None:
+        missing = f"{viewer_missing}, or pass --no-viewer"
+    if missing is not None:
+        print(missing, file=sys.stderr)
+        return 2
     if args.frames is not None and args.frames < 1:
         print("badf demo: --frames must be at least 1", file=sys.stderr)
         return 2
@@ -170,11 +179,8 @@ def _start_worker(stack: ExitStack, endpoint: str, device: str) -> None:
 
 
 def _start_viewer(stack: ExitStack, endpoint: str, host: str, port: int) -> None:
-    try:
-        from badf.web_viewer import viewer_process
-    except ImportError as error:
-        print(f"(no viewer: {error}; install badf[viewer], or pass --no-viewer)", flush=True)
-        return
+    from badf.web_viewer import viewer_process
+
     url = stack.enter_context(viewer_process(connect=endpoint, host=host, port=port))
     print(f"viewer: open {url} in a browser", flush=True)
 

@@ -5,8 +5,11 @@ from __future__ import annotations
 import argparse
 import json
 
+import pytest
+
 from badf.bench import _tolerances as tol
 from badf.bench import accuracy
+from badf.bench._common import find_mesh
 
 
 def test_small_accuracy_run_writes_consistent_results(tmp_path):
@@ -32,3 +35,31 @@ def test_small_accuracy_run_writes_consistent_results(tmp_path):
     # a finer lattice halves the dense grid's error near the surface (fixed seeds: the same points every run)
     assert rows["dense", 4]["errors"]["near"]["max"] < rows["dense", 3]["errors"]["near"]["max"]
     assert len(report["switches"]) == 7
+
+
+def test_subdivided_bunnies_are_not_there_without_the_bunny(tmp_path, monkeypatch, capsys):
+    """bunny-278k and bunny-1.1m were counted as there without the bunny they subdivide, so in a pip install
+    (no data folders) the default run skipped every mesh, wrote an empty report and exited 0 (eleventh
+    outside check). Now nothing is there: the one-line refusal, exit 2, and how to add a folder."""
+    from badf.bench import _common
+
+    monkeypatch.setattr(_common, "mesh_folders", lambda: [tmp_path])
+    monkeypatch.setattr(accuracy, "mesh_folders", lambda: [tmp_path])
+    parser = argparse.ArgumentParser()
+    accuracy.add_arguments(parser)
+    args = parser.parse_args(["--device", "cpu", "--meshes", ",".join(accuracy.SUBDIVIDED), "--no-stability",
+                              "--workers", "1", "--out-dir", str(tmp_path)])
+    assert accuracy.run(args) == 2
+    err = capsys.readouterr().err
+    assert "none of --meshes bunny-278k,bunny-1.1m" in err
+    assert "set BADF_SHARED_DATA to a folder that holds them" in err
+    assert not (tmp_path / "results").exists()
+
+
+def test_a_mesh_not_found_says_how_to_add_a_folder(tmp_path, monkeypatch):
+    """The lookup named the folders it searched but not BADF_SHARED_DATA, which adds one (documented nowhere)."""
+    monkeypatch.setenv("BADF_SHARED_DATA", str(tmp_path))
+    with pytest.raises(FileNotFoundError, match="set BADF_SHARED_DATA to a folder that holds it"):
+        find_mesh("no-such-mesh")
+    (tmp_path / "no-such-mesh.npz").write_bytes(b"")
+    assert find_mesh("no-such-mesh") == tmp_path / "no-such-mesh.npz"

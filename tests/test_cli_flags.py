@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -37,10 +38,10 @@ CASES = [
      "--points must be in 1..4194304, got 5000000"),
     (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--device", "gpu9"], "--device 'gpu9' is not a device"),
     (["demo", "--frames", "1", "--listen", "<free>", "--host", "999.9.9.9"], "--host: cannot serve the page on host"),
-    (["serve", "--listen", "<free>", "--worker-id", ""], "worker id must be 1 to 100 characters"),
+    (["serve", "--listen", "<free>", "--worker-id", ""], "--worker-id must be 1 to 100 characters"),
     (["serve", "--router-only", "--listen", "<free>", "--stats-interval", "-5"], "--stats-interval must be a positive"),
-    (["serve", "--listen", "<free>", "--stats-interval", "nan"], "stats_interval_s must be a positive finite number"),
-    (["serve", "--listen", "<free>", "--stats-interval", "inf"], "stats_interval_s must be a positive finite number"),
+    (["serve", "--listen", "<free>", "--stats-interval", "nan"], "--stats-interval must be a positive finite number"),
+    (["serve", "--listen", "<free>", "--stats-interval", "inf"], "--stats-interval must be a positive finite number"),
     (["serve", "--listen", "<free>", "--stats-interval", "1e-9"], "in 0.1..1e6, got 1e-09"),
     (["serve", "--listen", "<free>", "--stats-interval", "1e300"], "in 0.1..1e6, got 1e+300"),
     (["bench", "engine", "--quick", "--mesh", "<no-faces>", "--out", "/tmp"], "--out: '/tmp' is a folder"),
@@ -76,6 +77,14 @@ CASES = [
      "badf demo cloth: --mesh is for the morph scene"),
     (["demo", "cloth", "--no-viewer", "--frames", "1", "--listen", "<free>", "--points", "10"], "--points is for the morph"),
     (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--stiff"], "badf demo morph: --stiff is for the cloth"),
+    # errors named the settings' fields (stats_interval_s, max_slice_hz), not the flags (eleventh outside check)
+    (["serve", "--listen", "<free>", "--stats-interval", "0"], "badf serve: --stats-interval must be a positive"),
+    (["view", "--connect", "<free>", "--max-slice-hz", "0"], "badf view: --max-slice-hz must be a finite positive"),
+    (["view", "--connect", "<free>", "--max-mesh-hz", "-1"], "badf view: --max-mesh-hz must be a finite positive"),
+    (["view", "--connect", "<free>", "--max-info-hz", "nan"], "badf view: --max-info-hz must be a finite positive"),
+    (["view", "--connect", "<free>", "--port", "70000"], "badf view: --port must be an integer in 0..65535"),
+    (["view", "--connect", "<free>", "--timeout", "0"], "badf view: --timeout must be a positive number"),
+    (["view", "--connect", "<free>", "--object", "a/b"], "badf view: --object must be 1 to 100 characters"),
 ]
 
 
@@ -91,11 +100,73 @@ def test_a_malformed_command_line_is_one_clear_line(args: list[str], message: st
                  "<no-faces>": lambda: str(tmp_path / "no-faces.npz"), "<nan-vertex>": lambda: str(tmp_path / "nan.npz")}
     args = [stand_ins[arg]() if arg in stand_ins else arg for arg in args]
     done = subprocess.run([sys.executable, "-m", "badf.cli", *args], capture_output=True, text=True, timeout=120)
+    _assert_one_clear_line(done, message)
+
+
+def _assert_one_clear_line(done: subprocess.CompletedProcess, message: str) -> None:
     lines = [line for line in done.stderr.splitlines() if not line.startswith(("Warp ", "   "))]
     assert done.returncode == 2, done.stderr
     assert message in done.stderr
     assert "Traceback" not in done.stderr, done.stderr
     assert len(lines) == 1, done.stderr
+
+
+# A command run where an optional dependency is not installed (in a process that sees the module as absent:
+# `import` raises ModuleNotFoundError, `importlib.util.find_spec` gives None). They died in a traceback, the
+# demo's after it had started the worker, and the accuracy benchmark's after the whole run (eleventh outside
+# check).
+MISSING_EXTRAS = [
+    ("warp", ["serve", "--listen", "<free>"],
+     "badf serve needs 'warp', which is not installed; install it with: pip install 'badf[server]'"),
+    ("warp", ["demo", "--no-viewer", "--frames", "1", "--listen", "<free>"],
+     "badf demo needs 'warp', which is not installed; install it with: pip install 'badf[server]'"),
+    ("viser", ["demo", "--frames", "1", "--listen", "<free>", "--port", "0"],
+     "badf demo needs 'viser', which is not installed; install it with: pip install 'badf[viewer]', or pass "
+     "--no-viewer"),
+    ("warp", ["bench", "soak", "--seconds", "1"],
+     "badf bench soak needs 'warp', which is not installed; install it with: pip install 'badf[bench]'"),
+    ("trimesh", ["bench", "engine", "--quick", "--mesh", "<no-faces>"], "badf bench engine needs 'trimesh'"),
+    ("matplotlib", ["bench", "accuracy", "--device", "cpu", "--meshes", "spot", "--depths", "3", "--dense-max-depth",
+                    "3", "--switch-depth", "3", "--points", "60", "--near-points", "40", "--query-batch", "2000",
+                    "--repeat", "1", "--switch-meshes", "spot", "--no-stability", "--workers", "1", "--out-dir",
+                    "<out>"],
+     "badf bench accuracy needs 'matplotlib', which is not installed; install it with: pip install 'badf[bench]'"),
+]
+
+
+@pytest.mark.parametrize(("absent", "args", "message"), MISSING_EXTRAS,
+                         ids=[f"{absent}: {' '.join(args[:2])}" for absent, args, _ in MISSING_EXTRAS])
+def test_a_missing_extra_is_one_line_naming_it(absent: str, args: list[str], message: str, tmp_path) -> None:
+    (tmp_path / "sitecustomize.py").write_text(f"import sys\n\nsys.modules[{absent!r}] = None  # not installed\n")
+    np.savez(tmp_path / "no-faces.npz", vertices=np.zeros((3, 3), np.float32))
+    stand_ins = {"<free>": free_endpoint, "<out>": lambda: str(tmp_path / "out"),
+                 "<no-faces>": lambda: str(tmp_path / "no-faces.npz")}
+    args = [stand_ins[arg]() if arg in stand_ins else arg for arg in args]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(tmp_path), os.environ.get("PYTHONPATH")]))}
+    done = subprocess.run([sys.executable, "-m", "badf.cli", *args], capture_output=True, text=True, env=env,
+                          timeout=300)
+    _assert_one_clear_line(done, message)
+
+
+# `python -m badf.bench.NAME`, documented as `badf bench NAME`, parsed its flags and ran on its own: no flag
+# checks, a traceback for a missing file, no SIGTERM handling (eleventh outside check).
+PYTHON_M_BENCH = [
+    ("soak", ["--seconds", "0"], "badf bench soak: --seconds must be a positive finite number, got 0.0"),
+    ("service", ["--small", "--mesh", "/nonexistent/nothere.npz"], "badf bench service: /nonexistent/nothere.npz"),
+    ("engine", ["--quick", "--mesh", "<no-faces>", "--depth", "0"], "--depth must be in 1..10, got 0"),
+    ("viewer", ["--small", "--mesh", "<no-faces>", "--stream-fps", "0"], "--stream-fps must be a positive"),
+    ("scaleout", ["--small", "--mesh", "<no-faces>", "--seconds", "nan"], "--seconds must be a positive"),
+    ("accuracy", ["--no-stability", "--meshes", "spot", "--depths", "0"], "--depths must be in 1..10"),
+]
+
+
+@pytest.mark.parametrize(("name", "args", "message"), PYTHON_M_BENCH, ids=[name for name, _, _ in PYTHON_M_BENCH])
+def test_python_m_bench_runs_as_badf_bench(name: str, args: list[str], message: str, tmp_path) -> None:
+    np.savez(tmp_path / "no-faces.npz", vertices=np.zeros((3, 3), np.float32))
+    args = [str(tmp_path / "no-faces.npz") if arg == "<no-faces>" else arg for arg in args]
+    done = subprocess.run([sys.executable, "-m", f"badf.bench.{name}", *args], capture_output=True, text=True,
+                          cwd=tmp_path, timeout=120)
+    _assert_one_clear_line(done, message)
 
 
 def test_a_worker_that_cannot_reach_its_router_says_where_it_looked() -> None:

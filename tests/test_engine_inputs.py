@@ -239,3 +239,15 @@ def test_a_band_wider_than_any_distance_changes_nothing_and_info_stays_json(devi
         got, want = banded.query(points, mode=mode).distance, plain.query(points, mode=mode).distance
         assert np.all(np.isfinite(got))
         np.testing.assert_array_equal(got, want)
+
+
+def test_a_band_below_the_floor_is_refused_as_engine_md_says(device):
+    """docs/engine.md gave `band` as "None or > 0", while a band below 2^-40 of the domain's side raises
+    InvalidInputError at registration (eleventh outside check): the doc now says what the code does."""
+    vertices, faces = meshes.sphere()
+    with pytest.raises(InvalidInputError, match="band must be at least .* of the domain's side"):
+        DistanceField(vertices, faces, depth=3, band=1e-20, device=device)
+    row = next(line for line in (meshes.ROOT / "docs" / "engine.md").read_text().splitlines()
+               if line.startswith("| `band` |"))
+    assert "at least 2^-40 of the domain's side" in row.split("|")[2]
+    assert "a smaller band raises `InvalidInputError`" in row

@@ -147,6 +147,23 @@ def test_an_empty_batch_is_answered_empty(client: Client) -> None:
     assert remote.query(np.zeros((0, 3)), outputs=ALL_OUTPUTS).normal.shape == (0, 3)
 
 
+def test_the_rejected_input_examples_of_service_md_are_rejected_input(client: Client) -> None:
+    """docs/service.md gave "depth outside 1..10" as REJECTED_INPUT's example; the protocol refuses it first,
+    as INVALID_OPTION (eleventh outside check). Its examples now are the engine's refusals."""
+    vertices, faces = meshes.load("sphere")
+    row = next(line for line in (meshes.ROOT / "docs" / "service.md").read_text().splitlines()
+               if line.startswith("| 24 REJECTED_INPUT |"))
+    assert "a coordinate beyond +-1e18, a band below 2^-40 of the domain's side" in row
+    assert "a depth outside 1..10 is INVALID_OPTION" in row
+    with pytest.raises(InvalidOptionError):
+        client.register("deep", vertices, faces, depth=11)
+    with pytest.raises(RejectedInputError, match="band must be at least"):
+        client.register("thin", vertices, faces, depth=3, band=1e-20)
+    far = vertices.copy()
+    far[0, 0] = 1e19
+    with pytest.raises(RejectedInputError, match="must lie within"):
+        client.register("far", far, faces, depth=3)
+
 def test_a_refused_update_leaves_what_reregister_restores(client: Client) -> None:
     """An update the engine refuses (a coordinate beyond 1e18) replaced the handle's vertices, so a later
     reregister() sent the refused frame again and failed with it; the last good vertices were gone."""

@@ -319,6 +319,20 @@ def test_badf_view_serves_the_page_and_stops_on_sigint(served) -> None:
             process.wait(timeout=30)
 
 
+def test_viewer_process_in_a_script_without_the_main_guard_says_so(tmp_path) -> None:
+    """docs/viewer.md's viewer_process example, run as a plain script, failed: the spawned child imports the
+    script again and may not start a process there, and the parent said only "exited with status 1 before
+    serving" (eleventh outside check). It now names the missing `if __name__ == "__main__":` guard."""
+    script = tmp_path / "view_it.py"
+    script.write_text("from badf.web_viewer import viewer_process\n\n"
+                      f"with viewer_process(connect={free_endpoint()!r}, port=0, start_timeout_s=60) as url:\n"
+                      "    print(url)\n")
+    done = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True, timeout=180)
+    assert done.returncode == 1, done.stderr
+    last = done.stderr.strip().splitlines()[-1]
+    assert last.startswith("RuntimeError: the viewer process exited with status 1 while starting"), done.stderr
+    assert 'calls viewer_process needs `if __name__ == "__main__":` around the call' in last
+
 def test_viewer_process_serves_until_the_block_ends(served) -> None:
     endpoint, _, _ = served
     port = free_port()

@@ -8,9 +8,10 @@ import signal
 import sys
 import threading
 
-from badf.protocol import DEFAULT_ENDPOINT, BadfError
+from badf.client._client import timeout_seconds
+from badf.protocol import DEFAULT_ENDPOINT, BadfError, check_name
 from badf.web_viewer._process import exit_now
-from badf.web_viewer._viewer import RESOLUTIONS, UP_DIRECTIONS, Viewer, ViewerSettings
+from badf.web_viewer._viewer import RESOLUTIONS, UP_DIRECTIONS, Viewer, ViewerSettings, check_port, check_rate
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -38,6 +39,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def settings_from(args: argparse.Namespace) -> ViewerSettings:
+    # checked under the flags' names first: the settings name their fields ("max_slice_hz must be ...")
+    check_port(args.port, "--port")
+    for flag, rate in (("--max-slice-hz", args.max_slice_hz), ("--max-mesh-hz", args.max_mesh_hz),
+                       ("--max-info-hz", args.max_info_hz)):
+        check_rate(rate, flag)
+    timeout_seconds(args.timeout, what="--timeout")
+    if args.object is not None:
+        check_name(args.object, what="--object")
     return ViewerSettings(
         connect=args.connect,
         namespace=args.namespace,

@@ -30,15 +30,17 @@ def viewer_process(
     the duration of the block; yields the URL of its page.
 
     The child is started with `spawn` (a forked child of a process with a Zenoh session hangs when it opens
-    its own). Raises ImportError, saying what to install, when viser is missing; RuntimeError when the child
-    exits, or is not serving within `start_timeout_s`. Afterwards the child gets SIGTERM, and SIGKILL if it
+    its own), so a script that calls this needs `if __name__ == "__main__":` around the call: the child imports
+    the script again. Raises ImportError, saying what to install, when viser is missing; RuntimeError when the
+    child exits (saying so where the guard is missing), or is not serving within `start_timeout_s`. Afterwards the child gets SIGTERM, and SIGKILL if it
     has not exited 10 s later.
     """
     _import_viser()  # here, with its actionable message, rather than in the child
     viewer_settings = ViewerSettings(connect=connect, host=host, port=port, **settings)
     context = multiprocessing.get_context("spawn")
     urls = context.Queue()
-    process = context.Process(target=_serve, args=(viewer_settings, urls), name="badf-viewer", daemon=True)
+    started = context.Event()  # set once the child runs _serve, past importing the parent's main module
+    process = context.Process(target=_serve, args=(viewer_settings, urls, started), name="badf-viewer", daemon=True)
     process.start()
     try:
         deadline = time.monotonic() + start_timeout_s
@@ -47,6 +49,11 @@ def viewer_process(
                 url = urls.get(timeout=0.1)
                 break
             except queue.Empty:
+                if not process.is_alive() and not started.is_set():
+                    raise RuntimeError(
+                        f"the viewer process exited with status {process.exitcode} while starting: a script that "
+                        'calls viewer_process needs `if __name__ == "__main__":` around the call (the child is '
+                        "spawned, and imports the script again)")
                 if not process.is_alive():
                     raise RuntimeError(f"the viewer process exited with status {process.exitcode} before serving")
                 if time.monotonic() > deadline:
@@ -62,8 +69,9 @@ def viewer_process(
         urls.close()
 
 
-def _serve(settings: ViewerSettings, urls: Any) -> None:
+def _serve(settings: ViewerSettings, urls: Any, started: Any) -> None:
     """The child: serve the viewer until SIGTERM or SIGINT; exit status 1 if it cannot start."""
+    started.set()
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda _number, _frame: stop.set())

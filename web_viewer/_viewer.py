@@ -102,23 +102,32 @@ class ViewerSettings:
     watch_without_browser: bool = False
 
     def __post_init__(self) -> None:
-        if not isinstance(self.port, int) or not 0 <= self.port <= 65535:
-            raise ValueError(f"port must be an integer in 0..65535, got {self.port!r}")
+        check_port(self.port, "port")
         if self.resolution not in RESOLUTIONS:
             raise ValueError(f"resolution must be one of {', '.join(map(str, RESOLUTIONS))}, got {self.resolution!r}")
         if self.up not in UP_DIRECTIONS:
             raise ValueError(f"up must be one of {', '.join(UP_DIRECTIONS)}, got {self.up!r}")
         for name in ("max_slice_hz", "max_mesh_hz", "max_info_hz"):
-            value = getattr(self, name)
-            is_number = isinstance(value, (int, float)) and not isinstance(value, bool)
-            if not (is_number and math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a finite positive number, got {value!r}")
+            check_rate(getattr(self, name), name)
         timeout_seconds(self.timeout_s)  # as the client takes it, so a bad one is told before connecting
         KeySpace(self.namespace)
         if self.object_name is not None:
             check_name(self.object_name)
         connect = [self.connect] if isinstance(self.connect, str) else list(self.connect)
         zenoh_config(mode="client", connect=connect, config_file=self.config_file)  # names a malformed endpoint
+
+
+def check_port(port: object, name: str) -> None:
+    """ValueError, naming the port as `name` (a field or a flag), unless it is an integer in 0..65535."""
+    if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port <= 65535:
+        raise ValueError(f"{name} must be an integer in 0..65535, got {port!r}")
+
+
+def check_rate(value: object, name: str) -> None:
+    """ValueError, naming the rate as `name` (a field or a flag), unless it is a finite positive number."""
+    is_number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not (is_number and math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a finite positive number, got {value!r}")
 
 
 @dataclass(frozen=True)
