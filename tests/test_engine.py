@@ -1154,11 +1154,16 @@ def test_adf_normals_on_the_lattice_by_a_medial_axis_are_unit(device, sign):
     assert np.einsum("ij,ij->i", got.normal[clear], direction).min() > 0.0
 
 
-def _descents(points, normal, vertices, faces, step):
-    """How many normals point where the oracle's signed distance falls: a step along them goes deeper."""
+def _descents(points, normal, vertices, faces, step, field=None):
+    """How many normals point where the oracle's signed distance falls: a step along them goes deeper. With
+    `field`, only those along which exact mode's normal does not fall too (a step that crosses the medial
+    surface, from a point a hair from it, goes deeper along any normal)."""
     before = oracle.signed_distance(points, vertices, faces)
-    after = oracle.signed_distance(points + step * normal.astype(np.float64), vertices, faces)
-    return int(np.count_nonzero(after - before < 0.0))
+    falls = oracle.signed_distance(points + step * normal.astype(np.float64), vertices, faces) < before
+    if field is not None:
+        exact = field.query(points, mode="exact", outputs=("normal",)).normal.astype(np.float64)
+        falls &= oracle.signed_distance(points + step * exact, vertices, faces) >= before
+    return int(np.count_nonzero(falls))
 
 
 @pytest.mark.parametrize("sign", ["auto", "winding"])
@@ -1198,6 +1203,65 @@ def test_adf_normals_near_a_cad_parts_edges_point_out(device):
     points = points[rng.choice(len(points), 5000, replace=False)] + rng.normal(size=(5000, 3)) * cell
     got = field.query(points, mode="adf", outputs=("normal",))
     assert _descents(points, got.normal, vertices, faces, 0.05 * cell) == 0
+
+
+def test_adf_normals_in_a_gap_beside_an_edge_point_out(device):
+    """A box two finest cells above a floor: in the gap beside its bottom edge the corners' nearest points lie
+    on the floor and on the edge, and the interpolated gradient pointed down into the floor, up to 180
+    degrees off (61 of 6,000 gap points at depth 4; eleventh outside check). Those leaves were not marked
+    while a corner's direction was its face's normal rather than the direction from its nearest point."""
+    floor = trimesh.creation.box(extents=(2.0, 2.0, 0.1))
+    floor.apply_translation([0.0, 0.0, -0.6])
+    box = trimesh.creation.box(extents=(0.4, 0.4, 0.4))
+    box.apply_transform(trimesh.transformations.rotation_matrix(0.3, [0.0, 0.0, 1.0]))
+    cell = 2.4 / 16  # depth 4 over the floor's 2.4-wide domain
+    box.apply_translation([0.013, 0.1, -0.55 + 2.0 * cell + 0.2])
+    vertices = np.vstack([floor.vertices, box.vertices])
+    faces = np.vstack([floor.faces, box.faces + len(floor.vertices)])
+    field = DistanceField(vertices, faces, depth=4, device=device)
+    assert field.info()["domain"]["finest_cell"] == pytest.approx(cell)
+    rng = np.random.default_rng(2)
+    points = np.stack([rng.uniform(-0.45, 0.45, 6000), rng.uniform(-0.35, 0.55, 6000),
+                       rng.uniform(-0.55, -0.55 + 2.0 * cell, 6000)], axis=1)
+    got = field.query(points, mode="adf", outputs=("normal",))
+    assert _descents(points, got.normal, vertices, faces, 0.05 * cell, field) == 0
+
+
+def test_adf_normals_at_a_turned_boxs_right_angled_corner_point_out(device):
+    """A box turned 0.7 rad about (1, 2, 3): its faces' directions are exactly 90 degrees apart, and a leaf
+    inside a corner was marked or not by the last bit of their dot product. A point 0.22 cell inside the
+    corner had a normal 166 degrees from the oracle's (eleventh outside check). Directions more than about
+    78 degrees apart now mark a leaf."""
+    box = trimesh.creation.box(extents=(1.0, 0.8, 0.6))
+    turn = trimesh.transformations.rotation_matrix(0.7, [1.0, 2.0, 3.0])[:3, :3]
+    vertices, faces = np.asarray(box.vertices) @ turn.T, np.asarray(box.faces)
+    field = DistanceField(vertices, faces, depth=4, device=device)
+    point = np.array([[-0.31444553798511693, -0.5252993318933463, -0.20714231210195236]])
+    got = field.query(point, mode="adf", outputs=("normal",)).normal[0]
+    exact = field.query(point, mode="exact", outputs=("normal",)).normal[0]
+    assert got @ exact > 0.99
+
+
+def test_unsigned_adf_normals_by_the_centroid_rule_do_not_point_through_the_sheet(device):
+    """With refine="centroid" a sheet crosses coarser leaves, where the unsigned field's valley rule did not
+    run: normals pointed through the sheet at 3,019 of 20,000 points within two cells of a tilted sheet
+    (eleventh outside check). In a marked leaf of any size the normal now comes from the nearest face."""
+    vertices, faces = meshes.sheet(4)
+    tilt = trimesh.transformations.rotation_matrix(0.5, [1.0, 1.0, 0.0])[:3, :3]
+    vertices = vertices @ tilt.T
+    field = DistanceField(vertices, faces, depth=6, sign="none", refine="centroid", device=device)
+    cell = field.info()["domain"]["finest_cell"]
+    rng = np.random.default_rng(3)
+    points = meshes.surface_samples(vertices, faces, 200, rng)[:5000]
+    points = points + rng.normal(size=points.shape) * cell
+    got = field.query(points, mode="adf", outputs=("normal",))
+    exact = field.query(points, mode="exact", outputs=("normal",))
+    truth = oracle.nearest(points, vertices, faces)
+    away = points - truth.closest_point
+    clear = truth.distance > 0.05 * cell
+    towards = np.einsum("ij,ij->i", got.normal[clear], away[clear]) < 0.0
+    exact_towards = np.einsum("ij,ij->i", exact.normal[clear], away[clear]) < 0.0
+    assert int(np.count_nonzero(towards & ~exact_towards)) == 0
 
 
 @pytest.mark.parametrize("sign", ["auto", "pseudonormal", "winding"])

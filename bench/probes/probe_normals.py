@@ -1,7 +1,7 @@
 """Probe, not part of the product (python3 bench/probes/probe_normals.py OUT.json [device]; meshes from
 $BADF_SHARED_DATA; results in docs/results/normals-*): what ADF normals near the surface cost and how many
 point where the signed distance falls (a step along them goes deeper), on a smooth scan and on parts with
-sharp edges. Runs whichever badf is installed, so one file times the engine before and after a change."""
+sharp edges; and what normals cost at points spread over the mesh's bounding box. Runs whichever badf is installed, so one file times the engine before and after a change."""
 import json
 import os
 import sys
@@ -71,6 +71,11 @@ def main() -> None:
         ahead = field.query(points + step * got.normal, mode="exact", outputs=("distance",))
         row["descents"] = int(np.count_nonzero(ahead.distance.astype(np.float64) - exact.distance < 0.0))
         row["against_exact"] = int(np.count_nonzero(np.einsum("ij,ij->i", got.normal, exact.normal) < 0.0))
+        # points spread over the mesh's bounding box, most of them far from the surface
+        lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+        spread = (lo + (hi - lo) * np.random.default_rng(2).random((POINTS, 3))).astype(np.float32)
+        row["box_distance_ms"] = median_ms(lambda: field.query(spread, outputs=("distance",)))
+        row["box_normal_ms"] = median_ms(lambda: field.query(spread, outputs=("distance", "normal")))
         rows.append(row)
         print(json.dumps(row), flush=True)
     report = {"probe": "normals", "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
@@ -78,10 +83,11 @@ def main() -> None:
     with open(out, "w") as f:
         json.dump(report, f, indent=1)
     print(f"{'mesh':>16} {'sign':>12} {'dist ms':>8} {'normal ms':>9} {'first ms':>8} {'exact ms':>8} "
-          f"{'descents':>8} {'vs exact':>8}")
+          f"{'descents':>8} {'vs exact':>8} {'box dist':>8} {'box normal':>10}")
     for r in rows:
         print(f"{r['mesh']:>16} {r['sign']:>12} {r['adf_distance_ms']:8.3f} {r['adf_normal_ms']:9.3f} "
-              f"{r['adf_normal_first_ms']:8.3f} {r['exact_normal_ms']:8.3f} {r['descents']:8d} {r['against_exact']:8d}")
+              f"{r['adf_normal_first_ms']:8.3f} {r['exact_normal_ms']:8.3f} {r['descents']:8d} {r['against_exact']:8d} "
+              f"{r['box_distance_ms']:8.3f} {r['box_normal_ms']:10.3f}")
 
 
 if __name__ == "__main__":

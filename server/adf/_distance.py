@@ -61,12 +61,14 @@ _SURFACE_SNAP = wp.constant(SURFACE_SNAP)
 # An ADF gradient shorter than this (a distance field's has length 1) has lost its direction: the point
 # is answered exactly instead
 _WEAK_GRADIENT = wp.constant(0.01)
-# A leaf whose corners' nearest faces face apart (inside a sharp edge, wherever the medial surface runs
-# through it) has a trilinear gradient that can point anywhere, away from the surface too. Each corner's
-# face gives a direction (its unit normal turned towards the corner and signed by the corner's value: the
-# field's gradient there, where the face's interior is nearest); two corners whose directions are more
-# than 90 degrees apart mark the leaf (mark_medial_leaves), in bit MEDIAL_SHIFT + o of its parent's child mask
-# (o: its octant), above the bits of the children present
+# A leaf near the surface whose corners' nearest points lie in directions far apart (inside a sharp edge, in
+# a gap between two surfaces: wherever the medial surface crosses it) has a trilinear gradient that can
+# point anywhere, away from the surface too. Each corner's direction is the field's gradient there: from its
+# nearest point towards it, turned by its sign. A leaf near the surface with two corners whose directions are
+# further apart than this cosine (about 78 degrees: right-angle edges, whose two faces' directions are
+# exactly 90 degrees apart, come out marked whatever the rounding) is marked (mark_medial_leaves), in bit
+# MEDIAL_SHIFT + o of its parent's child mask (o: its octant), above the bits of the children present
+_MEDIAL_COSINE = wp.constant(0.2)
 MEDIAL_SHIFT = 8
 _MEDIAL_SHIFT = wp.constant(MEDIAL_SHIFT)
 # How far (in domain sides) off the surface an on-surface exact normal looks for the winding numbers' inside
@@ -529,19 +531,26 @@ def _nearest_corner_face(tree: OctreeView, corner_leaf: wp.array(dtype=wp.int32)
 
 
 @wp.func
-def _corner_direction(bvh: BvhView, leaf: int, value: float, q: wp.vec3) -> wp.vec3:
-    """The unit normal of lattice point q's nearest face (sorted leaf `leaf`), turned to point from the face
-    towards q and signed by q's value; zero where there is none (no face within the band, a degenerate face,
-    q on its plane)."""
+def _corner_direction(bvh: BvhView, leaf: int, value: float, q: wp.vec3, inv_side: float) -> wp.vec3:
+    """The field's unit gradient at lattice point q, whose nearest face is sorted leaf `leaf` and whose value
+    is `value`: from q's nearest point towards q, turned inward where the value is negative; zero where there
+    is none (no face within the band, q on the surface)."""
     if leaf < 0:
         return wp.vec3(0.0)
     a, b, c = leaf_triangle(bvh, leaf)
-    n = wp.cross(b - a, c - a)
-    length = wp.length(n)
-    side = wp.dot(q - a, n)
-    if length == 0.0 or side == 0.0:
+    foot, _feature = closest_point_on_triangle(q, a, b, c)
+    away = q - foot
+    length = wp.length(away)
+    if length * inv_side <= _SURFACE_SNAP:
         return wp.vec3(0.0)
-    return wp.where((value < 0.0) != (side < 0.0), -1.0, 1.0) * n / length
+    return wp.where(value < 0.0, -1.0, 1.0) * away / length
+
+
+@wp.func
+def _lattice_offset(octant: int, corner: int) -> int:
+    """Which of an internal node's 27 lattice points (x * 9 + y * 3 + z) is corner `corner` of child `octant`."""
+    return ((((octant >> 2) & 1) + ((corner >> 2) & 1)) * 9 + (((octant >> 1) & 1) + ((corner >> 1) & 1)) * 3
+            + (octant & 1) + (corner & 1))
 
 
 @wp.kernel(enable_backward=False)
@@ -553,12 +562,14 @@ def mark_medial_leaves(
     corner_value: wp.array(dtype=wp.float32),
     corner_leaf: wp.array(dtype=wp.int32),
     bvh: BvhView,
+    inv_side: float,
+    has_sign: int,
     child_mask: wp.array(dtype=wp.int32),
 ):
-    """Mark each child of an internal node that has two corners whose directions (_corner_direction) are more
-    than 90 degrees apart, in the node's child mask (bit _MEDIAL_SHIFT + octant; a child that is itself a
-    node is marked too, and never read). One thread per internal node; its 27 lattice points' directions are
-    worked out once each."""
+    """Mark each child of an internal node that has a corner near the surface (nearer for a field that
+    `has_sign`) and two corners whose directions (_corner_direction) are further apart than _MEDIAL_COSINE,
+    in the node's child mask (bit _MEDIAL_SHIFT + octant; a child that is itself a node is marked too, and
+    never read). One thread per internal node; its 27 lattice points' directions are worked out once each."""
     node = wp.tid()
     if node >= wp.min(totals[1], internal_capacity):
         return
@@ -567,30 +578,39 @@ def mark_medial_leaves(
     parent = morton3_decode(key & wp.int64(0xFFFFFFFF))
     child = tree.cell * float(1 << (tree.depth - level - 1))  # a child's side
     base = tree.origin + 2.0 * child * wp.vec3(float(parent[0]), float(parent[1]), float(parent[2]))
-    xs = _Vec27()
-    ys = _Vec27()
-    zs = _Vec27()
+    ux = _Vec27()
+    uy = _Vec27()
+    uz = _Vec27()
+    reach = _Vec27()  # |value|
     for point in range(27):
         slot = tree.corner_slot[node * 27 + point]
         q = base + child * wp.vec3(float(point // 9), float((point // 3) % 3), float(point % 3))
-        direction = _corner_direction(bvh, corner_leaf[slot], corner_value[slot], q)
-        xs[point] = direction[0]
-        ys[point] = direction[1]
-        zs[point] = direction[2]
+        u = _corner_direction(bvh, corner_leaf[slot], corner_value[slot], q, inv_side)
+        ux[point] = u[0]
+        uy[point] = u[1]
+        uz[point] = u[2]
+        reach[point] = wp.abs(corner_value[slot])
+    # near the surface: a corner within the child's diagonal of it (else the surface does not cross it) and,
+    # signed, within two finest diagonals (a contact's reach). Signed coarse leaves farther out keep the
+    # gradient: the medial surface runs through most of them inside a solid, and exact normals there, with
+    # their winding numbers, cost about as much as exact mode (a quarter of the bunny's domain)
+    near = 1.7320508 * child
+    if has_sign != 0:
+        near = 1.7320508 * wp.min(child, 2.0 * tree.cell)
     marks = int(0)
     for octant in range(8):
-        ox = (octant >> 2) & 1
-        oy = (octant >> 1) & 1
-        oz = octant & 1
-        apart = False
+        nearest = float(3.0e38)
+        least = float(1.0)
         for corner in range(8):
-            point = (ox + ((corner >> 2) & 1)) * 9 + (oy + ((corner >> 1) & 1)) * 3 + oz + (corner & 1)
-            u = wp.vec3(xs[point], ys[point], zs[point])
+            i = _lattice_offset(octant, corner)
+            nearest = wp.min(nearest, reach[i])
             for other in range(corner):
-                pair = (ox + ((other >> 2) & 1)) * 9 + (oy + ((other >> 1) & 1)) * 3 + oz + (other & 1)
-                if wp.dot(u, wp.vec3(xs[pair], ys[pair], zs[pair])) < 0.0:
-                    apart = True
-        if apart:
+                j = _lattice_offset(octant, other)
+                ui = wp.vec3(ux[i], uy[i], uz[i])
+                uj = wp.vec3(ux[j], uy[j], uz[j])
+                if wp.length_sq(ui) > 0.0 and wp.length_sq(uj) > 0.0:  # a corner on the surface has no direction
+                    least = wp.min(least, wp.dot(ui, uj))
+        if nearest <= near and least < _MEDIAL_COSINE:
             marks |= 1 << octant
     child_mask[node] = (child_mask[node] & 255) | (marks << _MEDIAL_SHIFT)
 
@@ -1052,9 +1072,10 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                     # |d| interpolated across a sheet has a V-shaped valley whose gradient is zero or points
                     # towards the sheet within a cell of it; there the direction from the nearest corner's face
                     # is the normal (off the face: away from it; on it: the face's own)
-                    # (only in a finest leaf, which the surface may cross: in a coarser one the interpolated
-                    # gradient holds)
-                    near = scale == 1 and nearest <= diagonal
+                    # (in a finest leaf the surface may cross, and in a marked leaf of any size: with
+                    # refine="centroid" the surface crosses coarser ones too)
+                    marked = (tree.child_mask[node] >> (_MEDIAL_SHIFT + octant)) & 1 != 0
+                    near = (scale == 1 and nearest <= diagonal) or marked
                     if (outputs & (_OUT_NORMAL | _OUT_CLOSEST)) != 0 and not beyond and near:
                         # p's nearest face, searched from the nearest of those recorded at the leaf's corners
                         # (p's own face need not be one of them: directions from those lay nearly in the sheet)

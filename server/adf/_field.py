@@ -418,7 +418,7 @@ class DistanceField:
         domain = self._domain
         tree = self._octree.view(domain.origin, domain.local_side)
         bvh, sign = self._bvh.view(), self._normals.view()
-        if mode == "adf" and bits & (OUT_CLOSEST | OUT_NORMAL) and self._sign != "none":
+        if mode == "adf" and bits & (OUT_CLOSEST | OUT_NORMAL):
             self._mark_medial_leaves(tree, bvh)
         band = domain.local_band(self._band)
         # float32 points are recentred on the device (the same float32 arithmetic); float64 ones on the host
@@ -584,15 +584,15 @@ class DistanceField:
         }
 
     def _mark_medial_leaves(self, tree, bvh) -> None:
-        """Mark the leaves whose corners' nearest faces face apart (mark_medial_leaves), where an ADF normal is
-        exact mode's: once a frame, for its first ADF query that asks for normals or closest points, so that
-        frames queried for distances alone (and unsigned fields, which have a rule of their own) pay nothing."""
+        """Mark the leaves near the surface whose corners' nearest points lie in directions far apart
+        (mark_medial_leaves), where an ADF normal comes from p's nearest face: once a frame, for its first ADF
+        query that asks for normals or closest points, so that frames queried for distances alone pay nothing."""
         if self._medial_marked:
             return
         o = self._octree
         wp.launch(mark_medial_leaves, dim=o.internal_capacity,
                   inputs=[o.node_keys, o.totals, o.internal_capacity, tree, self._corners.value, self._corners.leaf,
-                          bvh],
+                          bvh, 1.0 / self._domain.local_side, 0 if self._sign == "none" else 1],
                   outputs=[o.child_mask], device=self._device)
         self._medial_marked = True
 
