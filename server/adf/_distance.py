@@ -591,12 +591,13 @@ def mark_medial_leaves(
         uz[point] = u[2]
         reach[point] = wp.abs(corner_value[slot])
     # near the surface: a corner within the child's diagonal of it (else the surface does not cross it) and,
-    # signed, within two finest diagonals (a contact's reach). Signed coarse leaves farther out keep the
+    # signed, within a finest diagonal (a contact's reach). Signed coarse leaves farther out keep the
     # gradient: the medial surface runs through most of them inside a solid, and exact normals there, with
-    # their winding numbers, cost about as much as exact mode (a quarter of the bunny's domain)
+    # their winding numbers, cost about as much as exact mode (within two finest diagonals, 8% of points
+    # spread over the bunny's box went exact, and its normal queries took 4 times as long on the H100)
     near = 1.7320508 * child
     if has_sign != 0:
-        near = 1.7320508 * wp.min(child, 2.0 * tree.cell)
+        near = 1.7320508 * wp.min(child, tree.cell)
     marks = int(0)
     for octant in range(8):
         nearest = float(3.0e38)
