@@ -518,6 +518,7 @@ class DistanceField:
     def device(self) -> str:
         return str(self._device)
 
+    @_on_device
     def info(self) -> dict:
         """Resolved options and facts about the mesh (JSON-serialisable)."""
         return {
