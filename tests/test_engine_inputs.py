@@ -135,6 +135,20 @@ def test_the_same_values_as_float32_or_float64_make_the_same_field(device):
                                    rtol=0, atol=1e-6 * diag)
 
 
+def test_a_mesh_that_shrinks_to_a_third_gets_a_field_as_fine_as_a_fresh_one(device):
+    """A mesh updated to a third of its size kept its domain until it shrank below 1/8 of it, so its cells
+    were 3 times coarser than a fresh field's of the same frame, with no sign of it but the domain's side
+    (eleventh outside check). It now refits below about half its size: the field equals a fresh one."""
+    vertices, faces = meshes.load("spot")
+    field = DistanceField(vertices, faces, depth=5, device=device)
+    small = (vertices * 0.33).astype(np.float32)
+    field.update(small)
+    fresh = DistanceField(small, faces, depth=5, device=device)
+    assert field.info()["domain"]["side"] == pytest.approx(fresh.info()["domain"]["side"], rel=1e-6)
+    points = np.random.default_rng(5).uniform(-0.4, 0.4, size=(2000, 3)).astype(np.float32)
+    np.testing.assert_array_equal(field.query(points).distance, fresh.query(points).distance)
+
+
 @pytest.mark.parametrize(("size", "offset"), [(1.0, 1.0001234e9), (1e-3, 1.2345678e6)])
 def test_a_small_mesh_far_from_the_origin_keeps_its_domain(device, size, offset):
     """A float64 mesh small against float32's spacing where it lies: snapping the domain's centre to float32
