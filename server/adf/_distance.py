@@ -34,7 +34,7 @@ from badf.server.adf._geometry import (
     packed_leaf,
     quantize,
 )
-from badf.server.adf._octree import OctreeView, leaf_corner, locate
+from badf.server.adf._octree import OctreeView, lattice_point, leaf_corner, locate
 from badf.server.adf._sign import (
     SIGN_PSEUDONORMAL,
     SIGN_WINDING,
@@ -546,13 +546,6 @@ def _corner_direction(bvh: BvhView, leaf: int, value: float, q: wp.vec3, inv_sid
     return wp.where(value < 0.0, -1.0, 1.0) * away / length
 
 
-@wp.func
-def _lattice_offset(octant: int, corner: int) -> int:
-    """Which of an internal node's 27 lattice points (x * 9 + y * 3 + z) is corner `corner` of child `octant`."""
-    return ((((octant >> 2) & 1) + ((corner >> 2) & 1)) * 9 + (((octant >> 1) & 1) + ((corner >> 1) & 1)) * 3
-            + (octant & 1) + (corner & 1))
-
-
 @wp.kernel(enable_backward=False)
 def mark_medial_leaves(
     node_keys: wp.array(dtype=wp.int64),
@@ -603,17 +596,29 @@ def mark_medial_leaves(
         nearest = float(3.0e38)
         least = float(1.0)
         for corner in range(8):
-            i = _lattice_offset(octant, corner)
+            i = lattice_point(octant, corner)
             nearest = wp.min(nearest, reach[i])
+            ui = wp.vec3(ux[i], uy[i], uz[i])
             for other in range(corner):
-                j = _lattice_offset(octant, other)
-                ui = wp.vec3(ux[i], uy[i], uz[i])
+                j = lattice_point(octant, other)
                 uj = wp.vec3(ux[j], uy[j], uz[j])
                 if wp.length_sq(ui) > 0.0 and wp.length_sq(uj) > 0.0:  # a corner on the surface has no direction
                     least = wp.min(least, wp.dot(ui, uj))
         if nearest <= near and least < _MEDIAL_COSINE:
             marks |= 1 << octant
     child_mask[node] = (child_mask[node] & 255) | (marks << _MEDIAL_SHIFT)
+
+
+@wp.func
+def _nearest_point_from_corners(tree: OctreeView, corner_leaf: wp.array(dtype=wp.int32), node: int, octant: int,
+                                bvh: BvhView, p: wp.vec3):
+    """(p's nearest leaf, p's closest point on it, its feature), searched from the nearest of the faces recorded
+    at the corners of p's octree leaf (node, octant); p's own face need not be one of them."""
+    seed = _nearest_corner_face(tree, corner_leaf, node, octant, bvh, p)
+    leaf, _best_sq, _done = _nearest_with_band(bvh, p, seed, 0.0, UNLIMITED_VISITS)
+    a, b, c = leaf_triangle(bvh, leaf)
+    foot, feature = closest_point_on_triangle(p, a, b, c)
+    return leaf, foot, feature
 
 
 @wp.func
@@ -1069,21 +1074,17 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 beyond = band > 0.0 and wp.abs(value) >= band  # at the band: no face, no closest point, no normal
                 if length > 0.0 and not beyond:
                     unit = grad / length
+                # a leaf the medial surface crosses (mark_medial_leaves; marked for queries that ask for these)
+                directed = (outputs & (_OUT_NORMAL | _OUT_CLOSEST)) != 0 and not beyond
+                marked = directed and (tree.child_mask[node] >> (_MEDIAL_SHIFT + octant)) & 1 != 0
                 if wp.static(unsigned):
                     # |d| interpolated across a sheet has a V-shaped valley whose gradient is zero or points
-                    # towards the sheet within a cell of it; there the direction from the nearest corner's face
-                    # is the normal (off the face: away from it; on it: the face's own)
-                    # (in a finest leaf the surface may cross, and in a marked leaf of any size: with
-                    # refine="centroid" the surface crosses coarser ones too)
-                    marked = (tree.child_mask[node] >> (_MEDIAL_SHIFT + octant)) & 1 != 0
-                    near = (scale == 1 and nearest <= diagonal) or marked
-                    if (outputs & (_OUT_NORMAL | _OUT_CLOSEST)) != 0 and not beyond and near:
-                        # p's nearest face, searched from the nearest of those recorded at the leaf's corners
-                        # (p's own face need not be one of them: directions from those lay nearly in the sheet)
-                        seed_leaf = _nearest_corner_face(tree, corner_leaf, node, octant, bvh, p)
-                        near_leaf, _near_sq, _done = _nearest_with_band(bvh, p, seed_leaf, 0.0, UNLIMITED_VISITS)
-                        a, b, c = leaf_triangle(bvh, near_leaf)
-                        foot, _feature = closest_point_on_triangle(p, a, b, c)
+                    # towards the sheet within a cell of it; there the direction from p's nearest face is the
+                    # normal (off the face: away from it; on it: the face's own), searched for (the corners'
+                    # faces' directions lay nearly in the sheet). In a finest leaf the surface may cross, and in a
+                    # marked leaf of any size: with refine="centroid" the surface crosses coarser ones too
+                    if directed and ((scale == 1 and nearest <= diagonal) or marked):
+                        near_leaf, foot, _feature = _nearest_point_from_corners(tree, corner_leaf, node, octant, bvh, p)
                         away = p - foot
                         away_length = wp.length(away)
                         if away_length * inv_side > _SURFACE_SNAP:
@@ -1096,15 +1097,11 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                     # penalty force along it pushes deeper. In such a leaf (marked by mark_medial_leaves) the normal
                     # is exact mode's. The distance and face stay the interpolation's, so no output depends on which
                     # others are asked for
-                    if (outputs & (_OUT_NORMAL | _OUT_CLOSEST)) != 0 and not beyond:
-                        if (tree.child_mask[node] >> (_MEDIAL_SHIFT + octant)) & 1 != 0:
-                            seed_leaf = _nearest_corner_face(tree, corner_leaf, node, octant, bvh, p)
-                            near_leaf, _near_sq, _done = _nearest_with_band(bvh, p, seed_leaf, 0.0, UNLIMITED_VISITS)
-                            a, b, c = leaf_triangle(bvh, near_leaf)
-                            foot, feature = closest_point_on_triangle(p, a, b, c)
-                            inside = inside_at(bvh, sign, p, bvh.leaf_face[near_leaf], foot, feature, True)
-                            unit = exact_normal(tree, corner_leaf, node, octant, bvh, sign, p, near_leaf, foot,
-                                                feature, inside, inv_side)
+                    if marked:
+                        near_leaf, foot, feature = _nearest_point_from_corners(tree, corner_leaf, node, octant, bvh, p)
+                        inside = inside_at(bvh, sign, p, bvh.leaf_face[near_leaf], foot, feature, True)
+                        unit = exact_normal(tree, corner_leaf, node, octant, bvh, sign, p, near_leaf, foot, feature,
+                                            inside, inv_side)
                 # where a leaf's corners have their nearest points on opposite sides (a medial axis runs through
                 # it) the interpolated gradient can shrink to nothing: points on the lattice there had a zero
                 # normal and themselves as closest point. Such a point is answered exactly (whatever outputs

@@ -257,12 +257,19 @@ def locate(tree: OctreeView, cell: wp.vec3i):
 
 
 @wp.func
-def leaf_corner(tree: OctreeView, node: int, octant: int, corner: int) -> int:
-    """Unique-corner index of corner `corner` (bits x, y, z) of child `octant` of internal node `node`."""
+def lattice_point(octant: int, corner: int) -> int:
+    """Which of an internal node's 27 lattice points (x * 9 + y * 3 + z) is corner `corner` (bits x, y, z) of
+    its child `octant`."""
     x = ((octant >> 2) & 1) + ((corner >> 2) & 1)
     y = ((octant >> 1) & 1) + ((corner >> 1) & 1)
     z = (octant & 1) + (corner & 1)
-    return tree.corner_slot[node * 27 + x * 9 + y * 3 + z]
+    return x * 9 + y * 3 + z
+
+
+@wp.func
+def leaf_corner(tree: OctreeView, node: int, octant: int, corner: int) -> int:
+    """Unique-corner index of corner `corner` (bits x, y, z) of child `octant` of internal node `node`."""
+    return tree.corner_slot[node * 27 + lattice_point(octant, corner)]
 
 
 @wp.func
