@@ -75,7 +75,8 @@ class Client:
     """A connection to the badf workers behind a Zenoh router (by default the embedded one of `badf serve`).
 
     Use as a context manager, or call `close()` (clients still open when the interpreter exits are closed
-    then). `timeout` (seconds) bounds connecting and is the default for every call; `namespace` must match
+    then, and one dropped without it when it is collected). Like a file, it closes at the end of any `with`
+    block on it, an inner one included. `timeout` (seconds) bounds connecting and is the default for every call; `namespace` must match
     the workers'. `config_file` is a Zenoh JSON5 file (TLS, authentication) used as the base configuration.
     `limits` bound the replies taken and the requests sent: a request past them is refused before it goes
     (the workers' defaults are the same).
@@ -119,8 +120,14 @@ class Client:
         # worker started again under the same id (the same token) holds none of the last one's objects
         self._deaths: dict[str, int] = {}
         self._cancellations: dict[str, zenoh.CancellationToken] = {}  # per worker, for requests in flight
+        # Zenoh holds the callback for as long as the session lives, so it must not hold the client: a client
+        # dropped without close() would never be collected, and kept its session and threads until exit
+        # (tenth outside check). The finalizer closes the session once the client is collected.
         self._liveliness = self._session.liveliness().declare_subscriber(
-            self.keys.every_worker_token, self._on_liveliness, history=True
+            self.keys.every_worker_token, _weak_callback(self, Client._on_liveliness), history=True
+        )
+        self._finalizer = weakref.finalize(
+            self, _close_session, self._session, self._liveliness, self._publishers, self._publishing
         )
         _OPEN_CLIENTS.add(self)
 
@@ -134,21 +141,9 @@ class Client:
     def close(self) -> None:
         """Close the Zenoh session; objects on the workers stay. Never raises: a link that no longer moves
         (a worker stopped with frames queued towards it) can make Zenoh's close time out, after 10 s, with
-        an error that would otherwise end a `with Client(...)` block with a raw `zenoh.ZError`."""
-        if self._session.is_closed():
-            return
-        with self._publishing:
-            try:
-                self._liveliness.undeclare()
-                for publisher in self._publishers.values():
-                    publisher.undeclare()
-            except zenoh.ZError as error:
-                log.warning("closing the client's Zenoh session: %s", zenoh_message(error))
-            self._publishers.clear()
-            try:
-                self._session.close()
-            except zenoh.ZError as error:
-                log.warning("closing the client's Zenoh session: %s", zenoh_message(error))
+        an error that would otherwise end a `with Client(...)` block with a raw `zenoh.ZError`. A client
+        dropped without it is closed when it is collected."""
+        self._finalizer()
 
     # --- objects -------------------------------------------------------------------------------------
 
@@ -640,6 +635,42 @@ class RemoteObject:
 # thread that Zenoh runs the liveliness callback on is one it waits for, so a script that never closed its
 # client did not exit (tenth outside check).
 _OPEN_CLIENTS: weakref.WeakSet[Client] = weakref.WeakSet()
+
+
+def _weak_callback(client: Client, method):
+    """`method` of `client` as a callback that does not keep the client alive."""
+    ref = weakref.ref(client)
+
+    def callback(sample: zenoh.Sample) -> None:
+        target = ref()
+        if target is not None:
+            method(target, sample)
+
+    return callback
+
+
+def _close_session(session: zenoh.Session, liveliness, publishers: dict, publishing: threading.Lock) -> None:
+    """Close a client's session (its `close()`, or its finalizer once it is collected). A client collected on
+    one of Zenoh's own threads (its last reference dropped in a callback) has its session closed on a thread
+    of its own, since Zenoh would wait there for the very thread it runs on."""
+    if isinstance(threading.current_thread(), threading._DummyThread):  # type: ignore[attr-defined]
+        threading.Thread(target=_close_session, args=(session, liveliness, publishers, publishing),
+                         name="badf-client-close", daemon=True).start()
+        return
+    if session.is_closed():
+        return
+    with publishing:
+        try:
+            liveliness.undeclare()
+            for publisher in publishers.values():
+                publisher.undeclare()
+        except zenoh.ZError as error:
+            log.warning("closing the client's Zenoh session: %s", zenoh_message(error))
+        publishers.clear()
+        try:
+            session.close()
+        except zenoh.ZError as error:
+            log.warning("closing the client's Zenoh session: %s", zenoh_message(error))
 
 
 def _close_open_clients() -> None:

@@ -3,12 +3,14 @@ the CPU back-end, and the client. Results through the service must equal the eng
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import struct
 import subprocess
 import sys
 import threading
+import weakref
 
 import meshes
 import numpy as np
@@ -318,6 +320,28 @@ def test_a_script_that_never_closes_its_client_still_exits(shared_worker, shared
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert "end of the script" in done.stdout
+
+
+def test_a_client_dropped_without_close_is_collected_and_its_session_closed(shared_worker, shared_endpoint: str) -> None:
+    """A Client dropped without close() was never collected: the liveliness callback that Zenoh holds kept it,
+    so 30 dropped clients kept 30 sessions and their threads until exit (tenth outside check). Now the
+    callback holds it weakly, and collecting it closes its session."""
+    vertices, faces = meshes.load("sphere")
+    sessions, refs = [], []
+    for index in range(3):
+        client = Client(shared_endpoint, timeout=60)
+        remote = client.register(f"ball-dropped-{index}", vertices, faces, depth=3)
+        assert remote.query(vertices[:2]).distance.shape == (2,)
+        sessions.append(client._session)
+        refs.append(weakref.ref(client))
+        del client, remote
+    gc.collect()
+    assert [ref() for ref in refs] == [None] * 3
+    assert all(session.is_closed() for session in sessions)
+    with Client(shared_endpoint, timeout=60) as other:  # the objects stay on the worker, as after close()
+        for index in range(3):
+            assert other.object(f"ball-dropped-{index}").query(vertices[:1]).distance.shape == (1,)
+            other.object(f"ball-dropped-{index}").delete()
 
 
 def test_close_and_delete_beside_a_streaming_thread_do_not_raise(shared_worker, shared_endpoint: str) -> None:
