@@ -537,7 +537,10 @@ def test_info_read_beside_an_update_describes_one_frame(device):
     import threading
 
     small, faces = meshes.sphere()
-    large = small * np.float32(1.7) + np.float32(0.5)  # each update moves the domain
+    # each update moves the domain: the two never overlap (with an offset of 0.5 the sphere stayed inside the
+    # large one's domain, filling half of it, so every later frame kept that domain, and the test passed
+    # only while no read fell on an even frame)
+    large = small * np.float32(1.7) + np.float32(10.0)
     field = DistanceField(small, faces, depth=5, device=device)
     sides = {0: field.info()["domain"]["side"]}
     field.update(large)
@@ -559,6 +562,7 @@ def test_info_read_beside_an_update_describes_one_frame(device):
         mismatched += info["domain"]["side"] != sides[info["frame"] % 2]
     thread.join(timeout=600)
     assert reads > 0 and mismatched == 0, (mismatched, reads)
+    assert field.stats()["domain_moves"] == 29
 
 
 @pytest.mark.parametrize(("name", "depth", "band"), [("spot", 5, None), ("rocker-arm", 5, None), ("spot", 5, 0.05),
