@@ -159,6 +159,7 @@ class Client:
         coherence: bool = True,
         refine: RefineMethod = "surface",
         halo: int = 1,
+        region=None,
         frame: int = 0,
         replace: bool = False,
         worker: str | None = None,
@@ -168,9 +169,10 @@ class Client:
 
         Placed on `worker`, or on the least-loaded worker; an existing object of that name is an
         ObjectExistsError unless `replace`. `frame` numbers the initial vertices. Blocks until the worker
-        has built the field; see ObjectOptions for depth, sign, band, coherence, refine and halo.
+        has built the field; see ObjectOptions for depth, sign, band, coherence, refine, halo and region.
         """
-        options = ObjectOptions(depth=depth, sign=sign, band=band, coherence=coherence, refine=refine, halo=halo)
+        options = ObjectOptions(depth=depth, sign=sign, band=band, coherence=coherence, refine=refine, halo=halo,
+                                region=region)
         request = RegisterRequest(name, vertices, faces, options, frame=frame, replace=replace)
         info = self._register(request, worker=worker, timeout=timeout)
         return RemoteObject(self, info, vertices=_owned(request.vertices, vertices), faces=_owned(request.faces, faces))

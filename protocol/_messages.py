@@ -284,6 +284,34 @@ def _check_number(owner: str, name: str, value: object, *, positive: bool = Fals
     return float(value)
 
 
+def _check_box(owner: str, name: str, value: object) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """A box as ((xmin, ymin, zmin), (xmax, ymax, zmax)): finite numbers, the first corner at most the second."""
+    wanted = f"{owner}.{name} must be a box ((xmin, ymin, zmin), (xmax, ymax, zmax)) of finite numbers"
+    if isinstance(value, (str, bytes, bool)):
+        raise InvalidOptionError(f"{wanted}, got {_short(value)}")
+    try:
+        box = np.asarray(value)
+    except ValueError:
+        raise InvalidOptionError(f"{wanted}, got {_short(value)}") from None
+    if box.shape != (2, 3) or box.dtype.kind not in "fiu":
+        raise InvalidOptionError(f"{wanted}, got {_short(value)}")
+    box = box.astype(np.float64)
+    if not np.isfinite(box).all():
+        raise InvalidOptionError(f"{wanted}, got {_short(value)}")
+    if np.any(box[0] > box[1]):
+        raise InvalidOptionError(f"{owner}.{name}'s first corner must not exceed its second on any axis, got {_short(value)}")
+    return (tuple(box[0].tolist()), tuple(box[1].tolist()))  # type: ignore[return-value]
+
+
+def _box_of(numbers: tuple | None) -> tuple | None:
+    """A box from its six numbers on the wire (xmin, ymin, zmin, xmax, ymax, zmax); checked by the options."""
+    if numbers is None:
+        return None
+    if len(numbers) != 6:
+        raise MetadataError(f"a region must be six numbers (xmin, ymin, zmin, xmax, ymax, zmax), got {len(numbers)}")
+    return (tuple(numbers[:3]), tuple(numbers[3:]))
+
+
 def _check_face_indices(owner: str, faces: np.ndarray, vertex_count: int) -> None:
     smallest, largest = int(faces.min()), int(faces.max())
     if smallest < 0 or largest >= vertex_count:
@@ -323,7 +351,9 @@ class ObjectOptions:
     distances are then unsigned). band: distances beyond it are clamped (None: no band). coherence: reuse
     the last frame's nearest triangles as upper bounds (off for rigid objects). refine: which cells are
     split ("surface": every cell the surface crosses; "centroid": the paper's rule). halo: finest cells of
-    refinement added around those. The engine's docstring (badf.server.adf.DistanceField) has the details.
+    refinement added around those. region: a region of interest, ((xmin, ymin, zmin), (xmax, ymax, zmax)) in
+    the mesh's coordinates (None: everywhere): the octree is refined only where it needs, and ADF queries
+    outside it are answered exactly. The engine's docstring (badf.server.adf.DistanceField) has the details.
     """
 
     depth: int = 7
@@ -332,6 +362,7 @@ class ObjectOptions:
     coherence: bool = True
     refine: RefineMethod = "surface"
     halo: int = 1
+    region: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
 
     def __post_init__(self) -> None:
         owner = "ObjectOptions"
@@ -342,11 +373,14 @@ class ObjectOptions:
         _set(self, "coherence", _check_flag(owner, "coherence", self.coherence))
         _check_choice(owner, "refine", self.refine, REFINE_METHODS)
         _set(self, "halo", _check_int(owner, "halo", self.halo, maximum=MAX_HALO))
+        if self.region is not None:
+            _set(self, "region", _check_box(owner, "region", self.region))
 
     def to_json(self) -> dict[str, Any]:
         return {
             "depth": self.depth, "sign": self.sign, "band": self.band, "coherence": self.coherence,
             "refine": self.refine, "halo": self.halo,
+            "region": None if self.region is None else [*self.region[0], *self.region[1]],
         }  # fmt: skip
 
     @classmethod
@@ -358,6 +392,7 @@ class ObjectOptions:
             coherence=fields.flag("coherence"),
             refine=fields.text("refine"),  # type: ignore[arg-type]
             halo=fields.integer("halo"),
+            region=_box_of(fields.items("region", (int, float), "numbers", optional=True)),
         )
 
 

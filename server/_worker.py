@@ -131,6 +131,7 @@ def engine_field_builder(device: str | None) -> tuple[FieldBuilder, str]:
             coherence=options.coherence,
             refine=options.refine,
             halo=options.halo,
+            region=options.region,
             device=resolved,
         )
 

@@ -107,6 +107,7 @@ def object_options(draw) -> ObjectOptions:
         coherence=draw(st.booleans()),
         refine=draw(st.sampled_from(REFINE_METHODS)),
         halo=draw(st.integers(0, 8)),
+        region=draw(st.none() | hnp.arrays(np.float64, (2, 3), elements=finite).map(lambda box: np.sort(box, axis=0))),
     )
 
 

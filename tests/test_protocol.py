@@ -66,7 +66,8 @@ POINTS = rng.normal(size=(9, 3)).astype(np.float32)
 
 def samples() -> dict[type, object]:
     """One instance of every message type, with every optional array present where there is one."""
-    options = ObjectOptions(depth=6, sign="pseudonormal", band=0.25, coherence=False, refine="centroid", halo=0)
+    options = ObjectOptions(depth=6, sign="pseudonormal", band=0.25, coherence=False, refine="centroid", halo=0,
+                            region=((-1.0, -2.0, -3.0), (1.0, 2.5, 3.0)))
     return {
         RegisterRequest: RegisterRequest("bunny", VERTICES, FACES, options, frame=4, replace=True),
         ObjectInfo: ObjectInfo(
@@ -423,6 +424,26 @@ def test_integers_on_the_wire_are_bounded_and_told_by_name() -> None:
     for depth in (0, 11):
         with pytest.raises(InvalidOptionError, match=f"depth must be between 1 and 10, got {depth}"):
             ObjectOptions(depth=depth)
+
+
+def test_a_region_of_interest_is_a_box_of_finite_numbers() -> None:
+    assert ObjectOptions(region=[[0, 0, 0], [1, 2, 3]]).region == ((0.0, 0.0, 0.0), (1.0, 2.0, 3.0))
+    assert ObjectOptions(region=np.zeros((2, 3), np.float32)).to_json()["region"] == [0.0] * 6
+    for bad in ([0, 0, 0], [[0, 0], [1, 1]], [[0, 0, np.nan], [1, 1, 1]], "all", True, [["a"] * 3, ["b"] * 3]):
+        with pytest.raises(InvalidOptionError, match="region must be a box"):
+            ObjectOptions(region=bad)
+    with pytest.raises(InvalidOptionError, match="first corner must not exceed its second"):
+        ObjectOptions(region=[[0, 3, 0], [1, 2, 1]])
+    # on the wire: six numbers, or a clear error naming them
+    request = RegisterRequest("a", VERTICES, FACES, ObjectOptions(region=[[0, 0, 0], [1, 1, 1]]))
+    assert decode(encode(request), RegisterRequest).options.region == ((0.0,) * 3, (1.0,) * 3)
+    metadata = request.metadata()
+    for numbers, error, message in (([0, 0, 0, 1, 1], MetadataError, "six numbers"),
+                                    ([0, 0, 0, 1, "1", 1], MetadataError, "list of numbers"),
+                                    ([0, 0, 2, 1, 1, 1], InvalidOptionError, "must not exceed")):  # fmt: skip
+        metadata["options"]["region"] = numbers
+        with pytest.raises(error, match=message):
+            decode(pack(MessageKind.REGISTER, metadata, [VERTICES, FACES]), RegisterRequest)
 
 
 def test_key_space() -> None:

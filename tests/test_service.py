@@ -108,6 +108,7 @@ def test_protocol_choices_match_the_engine() -> None:
         ("fandisk", {"depth": 6, "sign": "winding", "band": 0.05}),
         ("homer", {"depth": 5, "sign": "none", "coherence": False, "refine": "centroid", "halo": 0}),
         ("sheet", {"depth": 6, "sign": "auto"}),
+        ("spot", {"depth": 5, "region": ((-0.2, -0.5, -0.5), (0.3, 0.5, 0.5))}),
     ],
 )
 def test_registered_meshes_answer_like_the_engine(client: Client, mesh: str, options: dict) -> None:
@@ -116,6 +117,8 @@ def test_registered_meshes_answer_like_the_engine(client: Client, mesh: str, opt
     local = DistanceField(vertices, faces, device="cpu", **options)
     info = remote.info()
     assert info.field_info["sign"] == local.info()["sign"]
+    assert info.field_info["region"] == local.info()["region"]
+    assert info.options.region == options.get("region")
     assert (info.vertex_count, info.face_count) == (local.vertex_count, local.face_count)
     assert_same_answers(remote, local, sample_points(vertices))
 

@@ -1010,6 +1010,10 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         g = (p - tree.origin) / tree.cell
         top = float(resolution)
         in_domain = g[0] >= 0.0 and g[1] >= 0.0 and g[2] >= 0.0 and g[0] <= top and g[1] <= top and g[2] <= top
+        # outside a region of interest the octree is coarse: such points are answered exactly
+        low, high = tree.region_lower, tree.region_upper
+        in_region = p[0] >= low[0] and p[1] >= low[1] and p[2] >= low[2] and p[0] <= high[0] and p[1] <= high[1]
+        in_region = in_region and p[2] <= high[2]
 
         seed = int(-1)
         node = int(0)
@@ -1023,7 +1027,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
             )
             t = (g - base) / float(scale)
             t = wp.vec3(wp.clamp(t[0], 0.0, 1.0), wp.clamp(t[1], 0.0, 1.0), wp.clamp(t[2], 0.0, 1.0))
-            if exact == 0:
+            if exact == 0 and in_region:
                 # trilinear interpolation of the leaf's corners, its gradient, and the corner nearest p
                 value = float(0.0)
                 grad = wp.vec3(0.0)

@@ -40,6 +40,7 @@ from badf.server.adf._inputs import (
     check_axis,
     check_finite_number,
     check_halo,
+    check_region,
     check_level,
     check_outputs,
     check_resolution,
@@ -172,6 +173,10 @@ class _Domain:
         inside = bool(np.all(lo >= self.centre - half) and np.all(hi <= self.centre + half))
         return inside and float(np.max(hi - lo)) >= REDOMAIN_MIN_FILL * self.side
 
+    def to_local_float64(self, points: np.ndarray) -> np.ndarray:
+        """Local coordinates of world points, in float64."""
+        return (np.asarray(points, dtype=np.float64) - self.centre) * self.scale
+
     def to_local(self, points: np.ndarray) -> np.ndarray:
         """Local float32 coordinates of world points, recentred in their own precision (float64 stays exact;
         float32 goes through float64 where the centre or the scale is not a float32 number)."""
@@ -245,6 +250,10 @@ class DistanceField:
             triangle's centroid (the paper's rule, with halo=0).
         halo: finest cells of refinement added around those, 0..2. With 1 (the default) every point within
             one finest cell of the surface is interpolated in a finest cell of exact corners.
+        region: None, or a box [[xmin, ymin, zmin], [xmax, ymax, zmax]] in the mesh's coordinates (a region
+            of interest: a robot's workspace, the part of a scene a simulation touches). The octree is refined
+            only where the box needs it; ADF queries outside the box are answered exactly, as beyond the
+            domain. The domain still fits the mesh, so depth means the same cells.
         device: "cpu", "cuda", "cuda:N", or None for the first GPU if there is one, else the CPU.
 
     Raises:
@@ -262,6 +271,7 @@ class DistanceField:
         coherence: bool = True,
         refine: Literal["surface", "centroid"] = "surface",
         halo: int = 1,
+        region=None,
         device: str | None = None,
     ):
         v = as_vertices(vertices)
@@ -272,6 +282,7 @@ class DistanceField:
         self._coherence = check_flag(coherence, "coherence")
         self._refine = check_choice(refine, "refine", REFINEMENTS)
         self._halo = check_halo(halo)
+        self._region = check_region(region)
         self._device = _resolve_device(device)
 
         # vertices no face uses (left over from editing, or parked far away) have no say in the domain
@@ -535,6 +546,7 @@ class DistanceField:
             "coherence": self._coherence,
             "refine": self._refine,
             "halo": self._halo,
+            "region": None if self._region is None else self._region.tolist(),
             "failed_update": self._failed_update,
             "orientation_flipped": self._flipped,
             "parts_face_both_ways": self._parts_disagree,
@@ -658,6 +670,7 @@ class DistanceField:
             with clock.stage("normals"):
                 self._normals.update(self._vertices)
         o = self._octree
+        o.set_region(None if self._region is None else self._domain.to_local_float64(self._region), origin, side)
         o.build(self._vertices, self._faces, self._face_count, origin, side, clock, measure=measure)
         self._beside.join(beside)
         with clock.stage("distances"):

@@ -128,6 +128,25 @@ def check_band(band) -> float | None:
     return value
 
 
+def check_region(region) -> np.ndarray | None:
+    """None, or a box as a (2, 3) float64 array: its lowest corner, then its highest, each at least the other
+    on every axis (a flat box, one thick at no axis, is allowed: it still meets a layer of cells)."""
+    if region is None:
+        return None
+    if isinstance(region, (bool, str, bytes)):
+        raise InvalidInputError(f"region must be None or a box [[xmin, ymin, zmin], [xmax, ymax, zmax]], got {region!r}")
+    arr = _numeric_array(region, "region")
+    if arr.shape != (2, 3):
+        raise InvalidInputError(f"region must have shape (2, 3) (its lowest corner, then its highest), got {arr.shape}")
+    arr = arr.astype(np.float64)
+    _check_finite(arr, "region")
+    if np.any(arr[0] > arr[1]):
+        axis = "xyz"[int(np.flatnonzero(arr[0] > arr[1])[0])]
+        raise InvalidInputError(f"region's lowest corner must not exceed its highest: on {axis} it runs from "
+                                f"{arr[0]['xyz'.index(axis)]:g} to {arr[1]['xyz'.index(axis)]:g}")
+    return arr
+
+
 def check_choice(value, name: str, choices: tuple[str, ...]) -> str:
     if not isinstance(value, str) or value not in choices:
         raise InvalidInputError(f"{name} must be one of {', '.join(choices)}; got {value!r}")

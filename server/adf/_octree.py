@@ -41,6 +41,7 @@ _SLACK = wp.constant(CELL_OVERLAP_SLACK)
 # The most threads the halo pass launches. A first measuring pass sizes it by an estimate, which for a huge
 # mesh at depth 10 can pass what one launch should hold; its threads stride over the pairs beyond them.
 _HALO_THREADS = 1 << 24
+_EVERYWHERE = 3.0e38  # the region box of an object without a region of interest
 
 
 @wp.struct
@@ -50,6 +51,8 @@ class OctreeView:
     depth: int
     origin: wp.vec3  # domain corner (local coordinates)
     cell: float  # finest cell size
+    region_lower: wp.vec3  # the region of interest (local coordinates): ADF queries outside it are exact
+    region_upper: wp.vec3
     child_mask: wp.array(dtype=wp.int32)  # (internal,) bit o set when child o holds surface
     first_child: wp.array(dtype=wp.int32)  # (internal,) node index of the first child present
     corner_slot: wp.array(dtype=wp.int32)  # (internal * 27,) unique-corner index of each lattice point
@@ -98,6 +101,28 @@ class Octree:
         self.child_mask: wp.array | None = None
         self.first_child: wp.array | None = None
         self.node_keys: wp.array | None = None
+        # the finest cells that may be refined (inclusive, per axis), and the box queries interpolate in
+        # (local coordinates): all of the grid and everywhere, unless a region of interest says otherwise
+        top = (1 << depth) - 1
+        self.region_cells = (wp.vec3i(0, 0, 0), wp.vec3i(top, top, top))
+        self.region_box = (wp.vec3(-_EVERYWHERE), wp.vec3(_EVERYWHERE))
+
+    def set_region(self, box: np.ndarray | None, origin: wp.vec3, side: float) -> None:
+        """Refine only where `box` ((2, 3), local coordinates; None: everywhere) needs it: finest cells the
+        surface crosses within `halo` cells of the box, and their halo. So every point in the box within
+        `halo` cells of the surface lies in a finest cell, as without a region. A box that misses the grid
+        keeps the cells nearest it, on the grid's boundary, which hold no surface."""
+        top = (1 << self.depth) - 1
+        if box is None:
+            self.region_cells = (wp.vec3i(0, 0, 0), wp.vec3i(top, top, top))
+            self.region_box = (wp.vec3(-_EVERYWHERE), wp.vec3(_EVERYWHERE))
+            return
+        cell = side / float(1 << self.depth)
+        lattice = (box - np.array([origin[0], origin[1], origin[2]])) / cell
+        lower = np.clip(np.floor(lattice[0]) - self.halo, 0, top).astype(int)
+        upper = np.clip(np.floor(lattice[1]) + self.halo, 0, top).astype(int)
+        self.region_cells = (wp.vec3i(*lower.tolist()), wp.vec3i(*upper.tolist()))
+        self.region_box = (wp.vec3(*box[0].tolist()), wp.vec3(*box[1].tolist()))
 
     def build(self, vertices: wp.array, faces: wp.array, face_count: int, origin: wp.vec3, side: float, clock,
               *, measure: bool) -> None:
@@ -130,6 +155,7 @@ class Octree:
         v.depth = self.depth
         v.origin = origin
         v.cell = side / float(1 << self.depth)
+        v.region_lower, v.region_upper = self.region_box
         v.child_mask = self.child_mask
         v.first_child = self.first_child
         v.corner_slot = self.corner_slot
@@ -152,9 +178,13 @@ class Octree:
         # the first try's table is kept for later frames: an estimate past the grid's cells would only waste it
         expected = min(expected, resolution**3)
 
+        lower, upper = self.region_cells
+
         def insert(table: HashSetView) -> None:
-            wp.launch(kernel, dim=face_count, inputs=[vertices, faces, origin, cell, resolution, shift, table],
-                      device=self.device)
+            wp.launch(kernel, dim=face_count, inputs=[vertices, faces, origin, cell, resolution, shift, lower, upper,
+                                                      table], device=self.device)
+            # a region the surface stays out of would leave no cell: the octree keeps one, at the region's corner
+            wp.launch(_insert_if_none, dim=1, inputs=[table, lower, shift], device=self.device)
             if halo > 0:
                 # the surface cells are listed first; the halo pass reads them while it lists more after them.
                 # Its threads cover the planned surface cells (at most _HALO_THREADS), and stride over any beyond.
@@ -396,9 +426,12 @@ def _insert_surface_cells(
     cell: float,
     resolution: int,
     shift: int,
+    region_lower: wp.vec3i,
+    region_upper: wp.vec3i,
     table: HashSetView,
 ):
     # every finest cell the triangle overlaps (separating axes), tested over the triangle's bounding box
+    # within the region's cells
     f = wp.tid()
     tri = faces[f]
     a = vertices[tri[0]]
@@ -406,8 +439,8 @@ def _insert_surface_cells(
     c = vertices[tri[2]]
     pad = wp.vec3(_SLACK * cell)
     inv_cell = 1.0 / cell
-    lo = quantize(wp.min(wp.min(a, b), c) - pad, origin, inv_cell, resolution)
-    hi = quantize(wp.max(wp.max(a, b), c) + pad, origin, inv_cell, resolution)
+    lo = wp.max(quantize(wp.min(wp.min(a, b), c) - pad, origin, inv_cell, resolution), region_lower)
+    hi = wp.min(quantize(wp.max(wp.max(a, b), c) + pad, origin, inv_cell, resolution), region_upper)
     half = 0.5 * cell + _SLACK * cell
     for x in range(lo[0], hi[0] + 1):
         for y in range(lo[1], hi[1] + 1):
@@ -425,13 +458,22 @@ def _insert_centroid_cells(
     cell: float,
     resolution: int,
     shift: int,
+    region_lower: wp.vec3i,
+    region_upper: wp.vec3i,
     table: HashSetView,
 ):
     f = wp.tid()
     tri = faces[f]
     centroid = (vertices[tri[0]] + vertices[tri[1]] + vertices[tri[2]]) / 3.0
     g = quantize(centroid, origin, 1.0 / cell, resolution)
-    set_insert(table, morton3(g[0], g[1], g[2]) << wp.int64(shift))
+    if g == wp.min(wp.max(g, region_lower), region_upper):  # within the region's cells
+        set_insert(table, morton3(g[0], g[1], g[2]) << wp.int64(shift))
+
+
+@wp.kernel(enable_backward=False)
+def _insert_if_none(table: HashSetView, cell: wp.vec3i, shift: int):
+    if table.count[0] == 0:
+        set_insert(table, morton3(cell[0], cell[1], cell[2]) << wp.int64(shift))
 
 
 @wp.kernel(enable_backward=False)
