@@ -15,10 +15,12 @@ def _insert_keys(keys: wp.array(dtype=wp.int64), table: HashSetView):
     set_insert(table, keys[wp.tid()])
 
 
-@pytest.mark.parametrize("distinct,expected", [(1, 1), (700, 700), (5000, 1200), (20011, 3)])
+@pytest.mark.parametrize("distinct,expected", [(1, 1), (700, 700), (5000, 1200), (20011, 3), (150001, 3)])
 def test_hash_set_lists_every_distinct_key_once(device, distinct, expected):
     # each key arrives 1 to 5 times in random order; an expected count below the distinct one makes the
-    # measuring pass try again with a larger table, whose size is no power of two
+    # measuring pass try again with a larger table, whose size is no power of two. Far below (150,001 keys
+    # into a first table of 1,024 slots), each key past the full table probed every slot: a pass stops
+    # early once the list has overflowed, and the passes after it find every key all the same
     rng = np.random.default_rng(distinct)
     unique = rng.choice(1 << 40, size=distinct, replace=False).astype(np.int64)
     keys = rng.permutation(np.repeat(unique, rng.integers(1, 6, size=distinct)))
