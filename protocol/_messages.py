@@ -217,8 +217,8 @@ class _Fields:
     def text(self, key: str, *, optional: bool = False) -> str:
         return self._get(key, (str,), "a string", optional)
 
-    def integer(self, key: str) -> int:
-        return self._get(key, (int,), "an integer", False)
+    def integer(self, key: str, *, optional: bool = False) -> int:
+        return self._get(key, (int,), "an integer", optional)
 
     def number(self, key: str, *, optional: bool = False) -> float | None:
         value = self._get(key, (int, float), "a number", optional)
@@ -500,25 +500,34 @@ class ObjectInfo(_Message):
 
 @dataclass(frozen=True, eq=False)
 class Frame(_Message):
-    """New vertex positions for an object, numbered by the sender; numbers must increase per object."""
+    """New vertex positions for an object, numbered by the sender; numbers must increase per object.
+    `registration` (ObjectInfo's) names the registration the sender means: a frame for one that has since
+    been replaced is stale, so it never lands on another mesh of the same vertex count. None: whichever."""
 
     KIND: ClassVar[MessageKind] = MessageKind.FRAME
     SLOTS: ClassVar[tuple[_Slot, ...]] = (_Slot("vertices", "float", ("N", 3), finite=True, keeps_float64=True),)
     name: str
     frame: int
     vertices: np.ndarray
+    registration: int | None = None
 
     def __post_init__(self) -> None:
         check_name(self.name)
         _set(self, "frame", _check_int("Frame", "frame", self.frame))
+        if self.registration is not None:
+            _set(self, "registration", _check_int("Frame", "registration", self.registration))
         _canonical_arrays(self)
 
     def metadata(self) -> dict[str, Any]:
-        return {"name": self.name, "frame": self.frame}
+        metadata = {"name": self.name, "frame": self.frame}
+        if self.registration is not None:
+            metadata["registration"] = self.registration
+        return metadata
 
     @classmethod
     def from_parts(cls, fields: _Fields, arrays: dict[str, np.ndarray | None]) -> Frame:
-        return cls(fields.text("name"), fields.integer("frame"), arrays["vertices"])  # type: ignore[arg-type]
+        return cls(fields.text("name"), fields.integer("frame"), arrays["vertices"],  # type: ignore[arg-type]
+                   registration=fields.integer("registration", optional=True))
 
 
 @dataclass(frozen=True)

@@ -395,6 +395,13 @@ class ServedObject:
     def _apply_frame(self, payload: zenoh.ZBytes | None) -> FrameAck:
         frame = decode(request_bytes(payload, self._limits), Frame, limits=self._limits)
         self._check_addressed_to_me(frame.name)
+        if frame.registration is not None and frame.registration != self._registration:
+            # the sender's handle is on a registration since replaced: its frame is for another mesh, which
+            # may have the same vertex count (a handle held across another client's replace=True)
+            raise StaleFrameError(
+                f"frame {frame.frame} was sent for a registration of {self.name!r} that has since been replaced "
+                "(registered again, with replace=True); take a handle on the new one (Client.object(name)) or "
+                "register it again")
         if frame.frame <= self._frame:
             raise StaleFrameError(f"frame {frame.frame} is not newer than the applied frame {self._frame}")
         if len(frame.vertices) != self._vertex_count:

@@ -200,7 +200,8 @@ limits_maps = st.dictionaries(st.text(max_size=12), st.integers(0, 2**40), max_s
 MESSAGES: dict[type, st.SearchStrategy] = {
     RegisterRequest: register_requests(),
     ObjectInfo: object_infos(),
-    Frame: st.builds(Frame, names, frame_numbers, float_rows(st.integers(1, 16))),
+    Frame: st.builds(Frame, names, frame_numbers, float_rows(st.integers(1, 16)),
+                     registration=st.none() | frame_numbers),
     FrameAck: st.builds(FrameAck, names, frame_numbers),
     QueryRequest: query_requests(),
     QueryReply: query_replies(),

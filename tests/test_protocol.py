@@ -86,7 +86,7 @@ def samples() -> dict[type, object]:
             field_info={"sign": "pseudonormal", "domain": [[0, 0, 0], [1, 1, 1]]},
             field_stats={"update_ms": 0.5},
         ),  # fmt: skip
-        Frame: Frame("bunny", 7, VERTICES),
+        Frame: Frame("bunny", 7, VERTICES, registration=2**62 - 5),
         FrameAck: FrameAck("bunny", 7),
         QueryRequest: QueryRequest("bunny", POINTS, mode="exact", outputs=("distance", "normal", "face")),
         QueryReply: QueryReply(

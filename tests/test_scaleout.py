@@ -390,6 +390,34 @@ def test_objects_spread_over_two_worker_processes_and_survive_losing_one(endpoin
         assert {info.worker: info.object_count for info in onlooker.workers()} == {"left": 4}
 
 
+def test_a_stopped_worker_leaves_the_others_listed_and_placing(endpoint: str) -> None:
+    """One worker stopped (SIGSTOP: a stuck driver, a long pause) made workers(), objects() and register()
+    without a worker fail for the whole deployment after the client's timeout, the healthy worker's replies
+    thrown away (twelfth outside check). They now answer with the workers that answered."""
+    vertices, faces = meshes.load("sphere")
+    left = WorkerSettings(worker_id="left", connect=(endpoint,), device="cpu", stats_interval_s=5.0)
+    right = dataclasses.replace(left, worker_id="right")
+    with (
+        router_process(RouterSettings(listen=(endpoint,))),
+        worker_process(left),
+        worker_process(right) as stopped,
+        Client(endpoint, timeout=60) as client,
+    ):
+        wait_until(lambda: len(client.workers()) == 2, what="both workers behind the router")
+        client.register("kept", vertices, faces, depth=3, worker="left")
+        client.register("paused", vertices, faces, depth=3, worker="right")
+        os.kill(stopped.pid, signal.SIGSTOP)
+        try:
+            assert [info.worker for info in client.workers(timeout=2)] == ["left"]
+            assert [info.name for info in client.objects(timeout=2)] == ["kept"]
+            assert client.register("placed", vertices, faces, depth=3, timeout=5).worker == "left"
+        finally:
+            os.kill(stopped.pid, signal.SIGCONT)
+        wait_until(lambda: len(client.workers()) == 2, what="the stopped worker back")
+        for name in ("kept", "paused", "placed"):
+            client.object(name).delete()
+
+
 def _requests_waiting(client: Client, worker: str) -> int:
     return next(info.requests_waiting for info in client.workers() if info.worker == worker)
 

@@ -28,6 +28,7 @@ from badf.protocol import (
     QUERY_MODES,
     QUERY_OUTPUTS,
     SIGN_METHODS,
+    AccessDeniedError,
     BadfError,
     DtypeError,
     ErrorReply,
@@ -43,6 +44,7 @@ from badf.protocol import (
     QueryRequest,
     RegisterRequest,
     RejectedInputError,
+    StaleFrameError,
     VertexCountMismatchError,
     WorkerTimeoutError,
     WorkerUnavailableError,
@@ -345,6 +347,51 @@ def test_a_client_dropped_without_close_is_collected_and_its_session_closed(shar
         for index in range(3):
             assert other.object(f"ball-dropped-{index}").query(vertices[:1]).distance.shape == (1,)
             other.object(f"ball-dropped-{index}").delete()
+
+
+def test_a_handle_held_across_a_replace_does_not_write_into_the_new_mesh(shared_worker, shared_endpoint: str) -> None:
+    """A handle held across another client's register(..., replace=True) of a mesh with as many vertices had
+    its update() acknowledged and its stream() applied onto the new registration's faces: the object then
+    served neither client's mesh (+1.573 at the origin where A's closed sphere says -1.572), and the
+    replacer's own next update was stale (twelfth outside check). Frames now name their registration."""
+    sphere, sphere_faces = meshes.load("sphere")
+    sheet_faces = sphere_faces[: len(sphere_faces) // 2]  # an open cap on the same vertices
+    with Client(shared_endpoint, timeout=60) as first, Client(shared_endpoint, timeout=60) as second:
+        held = first.register("part-replaced", sphere, sphere_faces, depth=3)
+        held.update(sphere * np.float32(1.1))
+        new = second.register("part-replaced", sphere, sheet_faces, depth=3, sign="none", replace=True)
+        with pytest.raises(StaleFrameError, match="has since been replaced"):
+            held.update(sphere * np.float32(1.6))
+        held.stream(sphere * np.float32(1.6))
+        assert new.update(sphere * np.float32(0.9)) == 1  # not stale: nothing of the old handle's landed
+        mesh = new.mesh(faces=True)
+        np.testing.assert_array_equal(mesh.faces, sheet_faces)
+        np.testing.assert_array_equal(mesh.vertices, sphere * np.float32(0.9))
+        # the refused update and the stream, each counted as a stale frame
+        wait_until(lambda: new.info().frames_dropped >= 2, timeout=30, what="the held handle's stream dropped")
+        info = new.info()
+        assert (info.frames_applied, info.frames_dropped) == (1, 2)
+        second.object("part-replaced").delete()
+
+
+def test_a_request_lost_to_a_delete_and_register_is_not_called_access_control(shared_worker, shared_endpoint: str) -> None:
+    """A handle's query that went while its object was deleted and registered again found nobody answering,
+    then found the name answering its info, and raised AccessDeniedError, "as Zenoh's access control does",
+    on a worker with none (29 to 277 in 12 s of such churn; twelfth outside check). The new registration
+    answering says the handle's is gone; its own answering still says the request was not delivered."""
+    vertices, faces = meshes.load("sphere")
+    with Client(shared_endpoint, timeout=60) as client:
+        old = client.register("thing-churned", vertices, faces, depth=3)
+        old.delete()
+        new = client.register("thing-churned", vertices, faces, depth=3)
+        key = client.keys.object_query("thing-churned")
+        told = client._nobody_answered(key, name=old.name, worker=old.worker, timeout=None,
+                                       registration=old._registration)
+        assert isinstance(told, ObjectNotFoundError) and "registered again" in str(told)
+        told = client._nobody_answered(key, name=new.name, worker=new.worker, timeout=None,
+                                       registration=new._registration)
+        assert isinstance(told, AccessDeniedError)
+        new.delete()
 
 
 def test_close_and_delete_beside_a_streaming_thread_do_not_raise(shared_worker, shared_endpoint: str) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import struct
 import threading
+import weakref
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from conftest import free_endpoint, wait_until
 from stand_in_field import StandInField, nearest_vertex
 
 from badf.client import Client
+from badf.client._client import _close_session as close_session
 from badf.protocol import (
     CELL_LEAF,
     BadfError,
@@ -473,6 +475,8 @@ def test_closing_a_client_never_raises_zenohs_close_timeout(caplog) -> None:
     client = Client.__new__(Client)  # no session of its own: only close() is under test
     client._session, client._publishers, client._publishing = StuckSession(), {}, threading.Lock()
     client._liveliness = type("Subscriber", (), {"undeclare": lambda self: None})()
+    client._finalizer = weakref.finalize(client, close_session, client._session, client._liveliness,
+                                         client._publishers, client._publishing)  # as Client() makes it
     with caplog.at_level("WARNING", logger="badf.client"):
         client.close()
     assert client._session.closes == 1
