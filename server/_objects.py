@@ -309,11 +309,12 @@ class ServedObject:
     def _enqueue_query(self, run: Callable[[zenoh.Query], None], query: zenoh.Query) -> None:
         self._enqueue(_Request(lambda: run(query), lambda error: refuse(query, error)))
 
-    def _enqueue(self, request: _Request) -> None:
-        """Queue `request` for the object's thread, or fail it at once when the queue is full or closed."""
+    def _enqueue(self, request: _Request, *, bounded: bool = True) -> None:
+        """Queue `request` for the object's thread, or fail it at once when the queue is full (unless not
+        `bounded`: the worker's own replacement of the object) or closed."""
         with self._lock:
             refusal = self._closing
-            if refusal is None and len(self._waiting) >= self._max_waiting:
+            if refusal is None and bounded and len(self._waiting) >= self._max_waiting:
                 refusal = WorkerBusyError(
                     f"{len(self._waiting)} requests for {self.name!r} are already waiting; try again"
                 )
@@ -509,7 +510,7 @@ class ServedObject:
             failure.append(error)
             done.set()
 
-        self._enqueue(_Request(run, fail))
+        self._enqueue(_Request(run, fail), bounded=False)  # one per replacement the worker has waiting
         done.wait()
         if failure:
             raise failure[0]

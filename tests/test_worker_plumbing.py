@@ -203,6 +203,39 @@ def test_a_busy_object_stalls_no_other(worker: ThreadWorker, client: Client) -> 
     assert slow.update(VERTICES + 2) == 2
 
 
+def test_replacing_a_busy_object_holds_up_no_other_registration(worker: ThreadWorker, client: Client,
+                                                                 endpoint: str) -> None:
+    """A replace=True of an object with requests queued waited for them on the worker's one registrar thread,
+    so every other registration waited too: 31 to 41 s behind 33 queued exact queries, where a registration
+    with a 10 s timeout timed out and was applied all the same (twelfth outside check). A replacement also
+    found a full queue BUSY."""
+    busy = client.register("busy", VERTICES, FACES)
+    worker.fields[0].gate.clear()
+    busy.stream(VERTICES + 1)  # the object's thread takes it and waits at the gate
+    assert worker.fields[0].updates_started.acquire(timeout=20)
+    waiting = [threading.Thread(target=lambda: busy.query(POINTS)) for _ in range(4)]  # fills its queue (4)
+    for thread in waiting:
+        thread.start()
+    wait_until(lambda: worker.running.objects()[0].waiting_count == 4, what="four queries queued")
+    replaced: list = []
+    with Client(endpoint, timeout=30) as other:
+        replacing = threading.Thread(
+            target=lambda: replaced.append(other.register("busy", VERTICES * 3, FACES, replace=True)))
+        replacing.start()
+        # built, and waiting behind the object's queue, off the registrar: another registration goes on
+        wait_until(lambda: len(worker.fields) == 2, what="the replacement's field built")
+        assert client.register("fresh", VERTICES * 2, FACES, timeout=5).name == "fresh"
+        assert not replaced and replacing.is_alive()
+        worker.fields[0].gate.set()
+        replacing.join(timeout=30)
+        for thread in waiting:
+            thread.join(timeout=30)
+        [info] = [remote.info() for remote in replaced]
+    assert info.registration != busy._registration and info.frame == 0
+    np.testing.assert_allclose(client.object("busy").query(POINTS).distance,
+                               expected_distance(POINTS, VERTICES * 3), rtol=1e-6)
+
+
 def test_a_full_queue_is_answered_busy(worker: ThreadWorker, client: Client, raw: zenoh.Session) -> None:
     obj = client.register("blob", VERTICES, FACES)
     worker.fields[0].gate.clear()
