@@ -8,7 +8,7 @@ import os
 import signal
 import threading
 import time
-from contextlib import ExitStack
+from contextlib import ExitStack, contextmanager
 
 import meshes
 import numpy as np
@@ -285,16 +285,21 @@ def assert_answers_like(remote, local: DistanceField, points: np.ndarray) -> Non
         np.testing.assert_array_equal(served.face, direct.face, err_msg=f"{remote.name} {mode}")
 
 
+@contextmanager
+def router_and_two_workers(endpoint: str):
+    """A router on `endpoint` and CPU workers "left" and "right" joined to it; yields the right one's process."""
+    left = WorkerSettings(worker_id="left", connect=(endpoint,), device="cpu", stats_interval_s=5.0)
+    right = dataclasses.replace(left, worker_id="right")
+    with router_process(RouterSettings(listen=(endpoint,))), worker_process(left), worker_process(right) as process:
+        yield process
+
+
 def test_objects_spread_over_two_worker_processes_and_survive_losing_one(endpoint: str, record_property) -> None:
     vertices, faces = meshes.load("spot")
     shapes = {f"cow{k}": vertices * np.float32(1.0 + 0.1 * k) for k in range(4)}  # four different answers
     points = sample_points(vertices, 400)
-    left = WorkerSettings(worker_id="left", connect=(endpoint,), device="cpu", stats_interval_s=5.0)
-    right = dataclasses.replace(left, worker_id="right")
     with (
-        router_process(RouterSettings(listen=(endpoint,))),
-        worker_process(left),
-        worker_process(right) as doomed,
+        router_and_two_workers(endpoint) as doomed,
         Client(endpoint, timeout=60) as client,
         Client(endpoint, timeout=60) as onlooker,
     ):
@@ -395,12 +400,8 @@ def test_a_stopped_worker_leaves_the_others_listed_and_placing(endpoint: str) ->
     without a worker fail for the whole deployment after the client's timeout, the healthy worker's replies
     thrown away (twelfth outside check). They now answer with the workers that answered."""
     vertices, faces = meshes.load("sphere")
-    left = WorkerSettings(worker_id="left", connect=(endpoint,), device="cpu", stats_interval_s=5.0)
-    right = dataclasses.replace(left, worker_id="right")
     with (
-        router_process(RouterSettings(listen=(endpoint,))),
-        worker_process(left),
-        worker_process(right) as stopped,
+        router_and_two_workers(endpoint) as stopped,
         Client(endpoint, timeout=60) as client,
     ):
         wait_until(lambda: len(client.workers()) == 2, what="both workers behind the router")

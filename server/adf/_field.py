@@ -181,10 +181,10 @@ class _Domain:
         """Local float32 coordinates of world points, recentred in their own precision (float64 stays exact;
         float32 goes through float64 where the centre or the scale is not a float32 number)."""
         if self.recentres_float32:
-            offsets = points - self.centre.astype(points.dtype)
+            local = (points - self.centre.astype(points.dtype)) * self.scale
         else:
-            offsets = points.astype(np.float64) - self.centre  # numpy would round these to float32
-        return np.ascontiguousarray(offsets * self.scale, dtype=np.float32)
+            local = self.to_local_float64(points)  # numpy would round float32 offsets to float32
+        return np.ascontiguousarray(local, dtype=np.float32)
 
     @property
     def recentres_float32(self) -> bool:
@@ -670,7 +670,8 @@ class DistanceField:
             with clock.stage("normals"):
                 self._normals.update(self._vertices)
         o = self._octree
-        o.set_region(None if self._region is None else self._domain.to_local_float64(self._region), origin, side)
+        if self._region is not None:  # in local coordinates, which follow the domain
+            o.set_region(self._domain.to_local_float64(self._region), origin, side)
         o.build(self._vertices, self._faces, self._face_count, origin, side, clock, measure=measure)
         self._beside.join(beside)
         with clock.stage("distances"):

@@ -140,10 +140,11 @@ def check_region(region) -> np.ndarray | None:
         raise InvalidInputError(f"region must have shape (2, 3) (its lowest corner, then its highest), got {arr.shape}")
     arr = arr.astype(np.float64)
     _check_finite(arr, "region")
-    if np.any(arr[0] > arr[1]):
-        axis = "xyz"[int(np.flatnonzero(arr[0] > arr[1])[0])]
-        raise InvalidInputError(f"region's lowest corner must not exceed its highest: on {axis} it runs from "
-                                f"{arr[0]['xyz'.index(axis)]:g} to {arr[1]['xyz'.index(axis)]:g}")
+    reversed_axes = np.flatnonzero(arr[0] > arr[1])
+    if len(reversed_axes):
+        k = int(reversed_axes[0])
+        raise InvalidInputError(f"region's lowest corner must not exceed its highest: on {'xyz'[k]} it runs from "
+                                f"{arr[0, k]:g} to {arr[1, k]:g}")
     return arr
 
 

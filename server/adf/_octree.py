@@ -106,17 +106,15 @@ class Octree:
         top = (1 << depth) - 1
         self.region_cells = (wp.vec3i(0, 0, 0), wp.vec3i(top, top, top))
         self.region_box = (wp.vec3(-_EVERYWHERE), wp.vec3(_EVERYWHERE))
+        self.has_region = False
 
-    def set_region(self, box: np.ndarray | None, origin: wp.vec3, side: float) -> None:
-        """Refine only where `box` ((2, 3), local coordinates; None: everywhere) needs it: finest cells the
-        surface crosses within `halo` cells of the box, and their halo. So every point in the box within
-        `halo` cells of the surface lies in a finest cell, as without a region. A box that misses the grid
-        keeps the cells nearest it, on the grid's boundary, which hold no surface."""
+    def set_region(self, box: np.ndarray, origin: wp.vec3, side: float) -> None:
+        """Refine only where `box` ((2, 3), local coordinates) needs it: finest cells the surface crosses
+        within `halo` cells of the box, and their halo. So every point in the box within `halo` cells of the
+        surface lies in a finest cell, as without a region. A box that misses the grid keeps the cells
+        nearest it, on the grid's boundary, which hold no surface."""
         top = (1 << self.depth) - 1
-        if box is None:
-            self.region_cells = (wp.vec3i(0, 0, 0), wp.vec3i(top, top, top))
-            self.region_box = (wp.vec3(-_EVERYWHERE), wp.vec3(_EVERYWHERE))
-            return
+        self.has_region = True
         cell = side / float(1 << self.depth)
         lattice = (box - np.array([origin[0], origin[1], origin[2]])) / cell
         lower = np.clip(np.floor(lattice[0]) - self.halo, 0, top).astype(int)
@@ -183,8 +181,8 @@ class Octree:
         def insert(table: HashSetView) -> None:
             wp.launch(kernel, dim=face_count, inputs=[vertices, faces, origin, cell, resolution, shift, lower, upper,
                                                       table], device=self.device)
-            # a region the surface stays out of would leave no cell: the octree keeps one, at the region's corner
-            wp.launch(_insert_if_none, dim=1, inputs=[table, lower, shift], device=self.device)
+            if self.has_region:  # one the surface stays out of would leave no cell: keep one, at its corner
+                wp.launch(_insert_if_none, dim=1, inputs=[table, lower, shift], device=self.device)
             if halo > 0:
                 # the surface cells are listed first; the halo pass reads them while it lists more after them.
                 # Its threads cover the planned surface cells (at most _HALO_THREADS), and stride over any beyond.
