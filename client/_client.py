@@ -447,7 +447,10 @@ class RemoteObject:
     Once its worker is gone (`available` turns False within milliseconds of the worker's liveliness token
     going), every call raises ObjectUnavailableError; `reregister()` restores the object elsewhere. If the
     token comes back with the worker still serving the same registration (a router restart), calls work
-    again."""
+    again. A handle is on one registration of its name: once that is deleted, or replaced by a registration
+    with replace=True (another client's, say), its queries, slices, info, mesh and delete raise
+    ObjectNotFoundError and its frames StaleFrameError, rather than reach the other mesh;
+    `Client.object(name)` gives a handle on the new one."""
 
     def __init__(
         self, client: Client, info: ObjectInfo, *, vertices: np.ndarray | None, faces: np.ndarray | None
@@ -551,7 +554,8 @@ class RemoteObject:
             outputs = (outputs,)  # "distance" as the engine takes it
         elif not isinstance(outputs, (list, tuple)):
             raise InvalidOptionError(f"outputs must be a sequence of {', '.join(QUERY_OUTPUTS)}, got {outputs!r}")
-        request = QueryRequest(self.name, points, mode=mode, outputs=outputs)  # type: ignore[arg-type]
+        request = QueryRequest(self.name, points, mode=mode, outputs=outputs,  # type: ignore[arg-type]
+                               registration=self._registration)
         reply = self._ask(self._client.keys.object_query(self.name), request, QueryReply, timeout)
         self._saw(reply.frame)
         return reply
@@ -569,7 +573,8 @@ class RemoteObject:
     ) -> SliceReply:
         """Signed distances on the plane `axis` = `position` and the octree cells it crosses (SliceRequest)."""
         request = SliceRequest(
-            self.name, axis, position, resolution=resolution, levels=levels, cells=cells, corners=corners
+            self.name, axis, position, resolution=resolution, levels=levels, cells=cells, corners=corners,
+            registration=self._registration,
         )  # type: ignore[arg-type]
         reply = self._ask(self._client.keys.object_slice(self.name), request, SliceReply, timeout)
         self._saw(reply.frame)
@@ -577,7 +582,8 @@ class RemoteObject:
 
     def info(self, *, timeout: float | None = None) -> ObjectInfo:
         """The worker's report on this object: frame, counters, the engine's info and stats."""
-        info = self._ask(self._client.keys.object_info(self.name), InfoRequest(self.name), ObjectInfo, timeout)
+        request = InfoRequest(self.name, registration=self._registration)
+        info = self._ask(self._client.keys.object_info(self.name), request, ObjectInfo, timeout)
         self._saw(info.frame)
         return info
 
@@ -585,7 +591,8 @@ class RemoteObject:
         """The object's newest applied vertices (N, 3) and their `frame`, and its faces (M, 3) when `faces`
         (they change only when the object is re-registered: leave them out when polling). The arrays are
         read-only views of the received message."""
-        reply = self._ask(self._client.keys.object_mesh(self.name), MeshRequest(self.name, faces), MeshReply, timeout)
+        request = MeshRequest(self.name, faces, registration=self._registration)
+        reply = self._ask(self._client.keys.object_mesh(self.name), request, MeshReply, timeout)
         self._saw(reply.frame)
         return reply
 
@@ -607,13 +614,22 @@ class RemoteObject:
         # or came back from a reply; then they take a new one.
         frame = self._frame if self._vertices_frame == self._frame else self._frame + 1
         request = RegisterRequest(self.name, self._vertices, self._faces, self.options, frame=frame)
-        info = self._client._register(request, worker=worker, timeout=timeout)
+        try:
+            info = self._client._register(request, worker=worker, timeout=timeout)
+        except ObjectExistsError:
+            # the placement's message advises replace=True, which reregister() does not take (thirteenth
+            # outside check)
+            raise ObjectExistsError(
+                f"{self.name!r} is still served (this registration, or one made since): reregister() restores "
+                "an object whose worker is gone; Client.object(name) gives a handle on what is served, and "
+                "Client.register(..., replace=True) swaps it") from None
         self._adopt(info)
         return info
 
     def delete(self, *, timeout: float | None = None) -> int:
         """Delete the object on its worker; returns its last applied frame."""
-        deleted = self._ask(self._client.keys.object_delete(self.name), DeleteRequest(self.name), Deleted, timeout)
+        request = DeleteRequest(self.name, registration=self._registration)
+        deleted = self._ask(self._client.keys.object_delete(self.name), request, Deleted, timeout)
         self._client._drop_publisher(self._client.keys.object_frame(self.name))
         self._deleted = True
         return deleted.frame

@@ -325,6 +325,19 @@ def _set(message: object, name: str, value: object) -> None:
     object.__setattr__(message, name, value)
 
 
+def _check_registration(message: Any) -> None:
+    """A request's optional `registration` (ObjectInfo's): the registration of the object it is meant for."""
+    if message.registration is not None:
+        _set(message, "registration", _check_int(type(message).__name__, "registration", message.registration))
+
+
+def _with_registration(message: Any, metadata: dict[str, Any]) -> dict[str, Any]:
+    """`metadata`, with the message's `registration` where it names one (left out otherwise, as before)."""
+    if message.registration is not None:
+        metadata["registration"] = message.registration
+    return metadata
+
+
 # --- messages ----------------------------------------------------------------------------------------
 
 
@@ -514,15 +527,11 @@ class Frame(_Message):
     def __post_init__(self) -> None:
         check_name(self.name)
         _set(self, "frame", _check_int("Frame", "frame", self.frame))
-        if self.registration is not None:
-            _set(self, "registration", _check_int("Frame", "registration", self.registration))
+        _check_registration(self)
         _canonical_arrays(self)
 
     def metadata(self) -> dict[str, Any]:
-        metadata = {"name": self.name, "frame": self.frame}
-        if self.registration is not None:
-            metadata["registration"] = self.registration
-        return metadata
+        return _with_registration(self, {"name": self.name, "frame": self.frame})
 
     @classmethod
     def from_parts(cls, fields: _Fields, arrays: dict[str, np.ndarray | None]) -> Frame:
@@ -552,7 +561,8 @@ class FrameAck(_Message):
 
 @dataclass(frozen=True, eq=False)
 class QueryRequest(_Message):
-    """A batch of points and the outputs wanted: interpolated from the ADF ("adf") or exact ("exact")."""
+    """A batch of points and the outputs wanted: interpolated from the ADF ("adf") or exact ("exact").
+    `registration`, as in Frame: a request for a registration since replaced is answered NOT_FOUND."""
 
     KIND: ClassVar[MessageKind] = MessageKind.QUERY
     SLOTS: ClassVar[tuple[_Slot, ...]] = (_Slot("points", "float", ("P", 3), finite=True, keeps_float64=True),)
@@ -560,9 +570,11 @@ class QueryRequest(_Message):
     points: np.ndarray
     mode: QueryMode = "adf"
     outputs: tuple[QueryOutput, ...] = ("distance",)
+    registration: int | None = None
 
     def __post_init__(self) -> None:
         check_name(self.name)
+        _check_registration(self)
         _check_choice("QueryRequest", "mode", self.mode, QUERY_MODES)
         if isinstance(self.outputs, str) or not self.outputs:
             raise InvalidOptionError(f"QueryRequest.outputs must be a non-empty sequence of {', '.join(QUERY_OUTPUTS)}")
@@ -575,7 +587,7 @@ class QueryRequest(_Message):
         _canonical_arrays(self)
 
     def metadata(self) -> dict[str, Any]:
-        return {"name": self.name, "mode": self.mode, "outputs": list(self.outputs)}
+        return _with_registration(self, {"name": self.name, "mode": self.mode, "outputs": list(self.outputs)})
 
     @classmethod
     def from_parts(cls, fields: _Fields, arrays: dict[str, np.ndarray | None]) -> QueryRequest:
@@ -584,6 +596,7 @@ class QueryRequest(_Message):
             arrays["points"],  # type: ignore[arg-type]
             mode=fields.text("mode"),  # type: ignore[arg-type]
             outputs=fields.items("outputs", (str,), "output names"),  # type: ignore[arg-type]
+            registration=fields.integer("registration", optional=True),
         )
 
 
@@ -623,7 +636,7 @@ class SliceRequest(_Message):
     """A planar slice of the field: the plane `axis` = `position` (world units) across the object's domain,
     sampled on a `resolution` x `resolution` grid; `cells` asks for the octree cells the plane crosses (only
     those with a level in `levels` = (lowest, highest), or all when None); `corners` for corner sample
-    points (not served yet: the engine has no per-plane corner list)."""
+    points (not served yet: the engine has no per-plane corner list). `registration` as in QueryRequest."""
 
     KIND: ClassVar[MessageKind] = MessageKind.SLICE_REQUEST
     name: str
@@ -633,10 +646,12 @@ class SliceRequest(_Message):
     levels: tuple[int, int] | None = None
     cells: bool = True
     corners: bool = False
+    registration: int | None = None
 
     def __post_init__(self) -> None:
         owner = "SliceRequest"
         check_name(self.name)
+        _check_registration(self)
         _check_choice(owner, "axis", self.axis, AXES)
         _set(self, "position", _check_number(owner, "position", self.position))
         _set(self, "resolution", _check_int(owner, "resolution", self.resolution, minimum=1))
@@ -656,10 +671,10 @@ class SliceRequest(_Message):
             )
 
     def metadata(self) -> dict[str, Any]:
-        return {
+        return _with_registration(self, {
             "name": self.name, "axis": self.axis, "position": self.position, "resolution": self.resolution,
             "levels": None if self.levels is None else list(self.levels), "cells": self.cells, "corners": self.corners,
-        }  # fmt: skip
+        })  # fmt: skip
 
     @classmethod
     def from_parts(cls, fields: _Fields, arrays: dict[str, np.ndarray | None]) -> SliceRequest:
@@ -671,6 +686,7 @@ class SliceRequest(_Message):
             levels=fields.items("levels", (int,), "integers", optional=True),  # type: ignore[arg-type]
             cells=fields.flag("cells"),
             corners=fields.flag("corners"),
+            registration=fields.integer("registration", optional=True),
         )
 
 
@@ -745,22 +761,25 @@ class SliceReply(_Message):
 @dataclass(frozen=True)
 class MeshRequest(_Message):
     """Ask for an object's newest applied vertices and, with `faces`, its faces (which never change: a viewer
-    that already has them asks with faces=False)."""
+    that already has them asks with faces=False). `registration` as in QueryRequest."""
 
     KIND: ClassVar[MessageKind] = MessageKind.MESH_REQUEST
     name: str
     faces: bool = True
+    registration: int | None = None
 
     def __post_init__(self) -> None:
         check_name(self.name)
+        _check_registration(self)
         _set(self, "faces", _check_flag("MeshRequest", "faces", self.faces))
 
     def metadata(self) -> dict[str, Any]:
-        return {"name": self.name, "faces": self.faces}
+        return _with_registration(self, {"name": self.name, "faces": self.faces})
 
     @classmethod
     def from_parts(cls, fields: _Fields, arrays: dict[str, np.ndarray | None]) -> MeshRequest:
-        return cls(fields.text("name"), faces=fields.flag("faces"))
+        return cls(fields.text("name"), faces=fields.flag("faces"),
+                   registration=fields.integer("registration", optional=True))
 
 
 @dataclass(frozen=True, eq=False)
@@ -794,21 +813,26 @@ class MeshReply(_Message):
 
 @dataclass(frozen=True)
 class InfoRequest(_Message):
-    """Ask for an object's info (`name`), or, on a wildcard or worker key, for every match (None)."""
+    """Ask for an object's info (`name`), or, on a wildcard or worker key, for every match (None).
+    `registration` as in QueryRequest (with a name only)."""
 
     KIND: ClassVar[MessageKind] = MessageKind.INFO_REQUEST
     name: str | None = None
+    registration: int | None = None
 
     def __post_init__(self) -> None:
         if self.name is not None:
             check_name(self.name)
+        elif self.registration is not None:
+            raise InvalidOptionError("InfoRequest.registration needs a name: it names one object's registration")
+        _check_registration(self)
 
     def metadata(self) -> dict[str, Any]:
-        return {"name": self.name}
+        return _with_registration(self, {"name": self.name})
 
     @classmethod
     def from_parts(cls, fields: _Fields, arrays: dict[str, np.ndarray | None]) -> InfoRequest:
-        return cls(fields.text("name", optional=True))
+        return cls(fields.text("name", optional=True), registration=fields.integer("registration", optional=True))
 
 
 @dataclass(frozen=True)
@@ -866,18 +890,23 @@ class WorkerInfo(_Message):
 
 @dataclass(frozen=True)
 class DeleteRequest(_Message):
+    """Delete an object; `registration` as in QueryRequest (a handle's delete never removes the object another
+    client registered in its place)."""
+
     KIND: ClassVar[MessageKind] = MessageKind.DELETE_REQUEST
     name: str
+    registration: int | None = None
 
     def __post_init__(self) -> None:
         check_name(self.name)
+        _check_registration(self)
 
     def metadata(self) -> dict[str, Any]:
-        return {"name": self.name}
+        return _with_registration(self, {"name": self.name})
 
     @classmethod
     def from_parts(cls, fields: _Fields, arrays: dict[str, np.ndarray | None]) -> DeleteRequest:
-        return cls(fields.text("name"))
+        return cls(fields.text("name"), registration=fields.integer("registration", optional=True))
 
 
 @dataclass(frozen=True)

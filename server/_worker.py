@@ -343,16 +343,20 @@ class Worker:
 
     def _install(self, staged: _Staged) -> ObjectInfo:
         """Serve a built field: swap it into the object it replaces (after that object's queued requests), or
-        serve it as a new object."""
+        serve it as a new object. A replacement whose object went meanwhile (deleted) creates it, and one
+        whose name was served again meanwhile (by a registration or another replacement) swaps into that: two
+        replacements racing a delete both succeed, the later one last (thirteenth outside check: the second
+        was refused with "pass replace=True", which it had)."""
         request, built, build_ms, existing = staged.request, staged.field, staged.build_ms, staged.existing
         registration = secrets.randbits(62)  # tells this registration from any other, in any worker's life
-        if existing is not None:
-            try:
-                info = existing.swap(built, request.options, request.frame, request.vertices, request.faces,
-                                     registration)
-            except ObjectNotFoundError:  # deleted while the new field was built: replace=True creates it
-                existing = None
-        if existing is None:
+        while True:
+            if existing is not None:
+                try:
+                    info = existing.swap(built, request.options, request.frame, request.vertices, request.faces,
+                                         registration)
+                    break
+                except ObjectNotFoundError:  # deleted while the new field was built: replace=True creates it
+                    pass
             served = ServedObject(
                 request.name,
                 built,
@@ -367,22 +371,27 @@ class Worker:
                 max_waiting_requests=self.settings.max_waiting_requests,
                 on_deleted=self._forget,
             )
+            info = served.info()  # before anyone can swap another registration in
             with self._lock:
                 if self._closing:
                     raise WorkerUnavailableError(f"worker {self.worker_id} is shutting down")
-                if request.name in self._objects:  # registered while a replacement waited for its object
-                    raise ObjectExistsError(
-                        f"object {request.name!r} was registered again on worker {self.worker_id} while this "
-                        "replacement waited; pass replace=True to swap it")
-                self._objects[request.name] = served
-            served.start(self._session)
-            info = served.info()
+                existing = self._objects.get(request.name)  # served again while this one was built or waited
+                if existing is None:
+                    self._objects[request.name] = served
+            if existing is None:
+                served.start(self._session)
+                break
+            if not request.replace:
+                raise ObjectExistsError(
+                    f"object {request.name!r} was registered on worker {self.worker_id} while this registration "
+                    "was built; pass replace=True to swap it")
+        replaced = existing is not None
         with self._lock:
             self._registered_total += 1
         resolved_sign = info.field_info.get("sign", request.options.sign)
         log.info(
             "%s %r: %d vertices, %d faces, depth %d, sign %s, frame %d, built in %.1f ms on %s",
-            "replaced" if existing is not None else "registered",
+            "replaced" if replaced else "registered",
             request.name, info.vertex_count, info.face_count, request.options.depth, resolved_sign,
             request.frame, build_ms, self.device,
         )  # fmt: skip

@@ -3,11 +3,14 @@
 Distance is to the nearest vertex (numpy brute force): enough to tell frames apart and check that a reply
 belongs to the vertices of the frame it names. `gate` is open (set) at first; a test
 that clears it holds `update` until it is set again, to keep an object busy and watch work pile up.
+`on_update`, when a test sets it, is called with each frame's vertices once they passed the gate, on the
+object's thread, before `update` returns (to make something arrive while a frame is applied).
 """
 
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,6 +47,7 @@ class StandInField:
         self.gate.set()
         self.frame = 0
         self.updates_started = threading.Semaphore(0)
+        self.on_update: Callable[[np.ndarray], None] | None = None
 
     @property
     def vertex_count(self) -> int:
@@ -56,6 +60,8 @@ class StandInField:
     def update(self, vertices: np.ndarray) -> int:
         self.updates_started.release()
         self.gate.wait()
+        if self.on_update is not None:
+            self.on_update(vertices)
         if np.abs(vertices).max() > 1e6:
             raise ValueError("vertices beyond 1e6 are refused by this stand-in")
         self._vertices = np.array(vertices, dtype=np.float32)

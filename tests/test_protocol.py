@@ -88,7 +88,7 @@ def samples() -> dict[type, object]:
         ),  # fmt: skip
         Frame: Frame("bunny", 7, VERTICES, registration=2**62 - 5),
         FrameAck: FrameAck("bunny", 7),
-        QueryRequest: QueryRequest("bunny", POINTS, mode="exact", outputs=("distance", "normal", "face")),
+        QueryRequest: QueryRequest("bunny", POINTS, mode="exact", outputs=("distance", "normal", "face"), registration=11),
         QueryReply: QueryReply(
             "bunny",
             7,
@@ -97,7 +97,8 @@ def samples() -> dict[type, object]:
             normal=POINTS / 3,
             face=np.arange(9, dtype=np.int32),
         ),
-        SliceRequest: SliceRequest("bunny", "y", -0.25, resolution=64, levels=(2, 5), cells=True, corners=True),
+        SliceRequest: SliceRequest("bunny", "y", -0.25, resolution=64, levels=(2, 5), cells=True, corners=True,
+                                   registration=0),
         SliceReply: SliceReply(
             "bunny",
             7,
@@ -110,15 +111,15 @@ def samples() -> dict[type, object]:
             cell_flags=np.array([0, 1, 3, 0, 1, 1], np.uint8),
             corner_points=rng.normal(size=(8, 3)).astype(np.float32),
         ),  # fmt: skip
-        InfoRequest: InfoRequest("bunny"),
+        InfoRequest: InfoRequest("bunny", registration=2**62 - 1),
         WorkerInfo: WorkerInfo(
             "w1", "cuda:0", 2, 100, 200, 12.5, Limits().to_json(),
             requests_waiting=3, frames_applied=40, queries_answered=7, points_answered=7000,
         ),  # fmt: skip
-        DeleteRequest: DeleteRequest("bunny"),
+        DeleteRequest: DeleteRequest("bunny", registration=5),
         Deleted: Deleted("bunny", 7),
         ErrorReply: ErrorReply(int(ErrorCode.NOT_FOUND), "no object 'bunny'"),
-        MeshRequest: MeshRequest("bunny", faces=False),
+        MeshRequest: MeshRequest("bunny", faces=False, registration=3),
         MeshReply: MeshReply("bunny", 7, VERTICES, FACES),
     }
 
@@ -138,6 +139,28 @@ def assert_same(a: object, b: object) -> None:
 def test_every_message_type_round_trips(cls: type) -> None:
     message = samples()[cls]
     assert_same(decode(bytes(encode(message)), cls), message)
+
+
+@pytest.mark.parametrize("make", [
+    lambda registration: QueryRequest("bunny", POINTS, registration=registration),
+    lambda registration: SliceRequest("bunny", "x", 0.0, registration=registration),
+    lambda registration: InfoRequest("bunny", registration=registration),
+    lambda registration: MeshRequest("bunny", registration=registration),
+    lambda registration: DeleteRequest("bunny", registration=registration),
+], ids=["query", "slice", "info", "mesh", "delete"])
+def test_a_request_names_a_registration_or_none(make) -> None:
+    """Requests name the registration their handle is on (thirteenth outside check); None, the default,
+    leaves it out of the metadata, as before."""
+    assert "registration" not in make(None).metadata()
+    assert make(7).metadata()["registration"] == 7
+    for bad in (-1, 2**63, 1.5, True, "7"):
+        with pytest.raises(InvalidOptionError, match="registration"):
+            make(bad)
+
+
+def test_an_info_request_for_every_object_names_no_registration() -> None:
+    with pytest.raises(InvalidOptionError, match="needs a name"):
+        InfoRequest(None, registration=3)
 
 
 def test_optional_arrays_round_trip_absent() -> None:

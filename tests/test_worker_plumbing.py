@@ -423,6 +423,118 @@ def test_a_replace_racing_a_delete_leaves_the_new_object(endpoint: str) -> None:
         assert info.registration != first_registration
 
 
+def test_a_handle_on_a_replaced_registration_reads_and_deletes_nothing_of_the_new_one(
+        worker: ThreadWorker, client: Client, endpoint: str) -> None:
+    """A handle held across another client's replace=True answered its queries, info and mesh from the new
+    mesh, and its delete() deleted the new object; a handle whose own delete() was followed by another
+    registration of the name read that too (thirteenth outside check). Its requests now name its
+    registration."""
+    old = client.register("blob", VERTICES, FACES)
+    with Client(endpoint, timeout=10) as other:
+        new = other.register("blob", VERTICES * 3, FACES, replace=True)
+        calls = {"query": lambda: old.query(POINTS), "slice": lambda: old.slice("z", 0.0, resolution=8),
+                 "info": old.info, "mesh": old.mesh, "delete": old.delete}
+        for what, call in calls.items():
+            with pytest.raises(ObjectNotFoundError, match="since been deleted or replaced"):
+                call()
+                pytest.fail(f"{what} from the old handle was answered")
+        np.testing.assert_allclose(new.query(POINTS).distance, expected_distance(POINTS, VERTICES * 3), rtol=1e-6)
+        assert client.object("blob").info().registration == new.info().registration
+        new.delete()
+        again = other.register("blob", VERTICES * 5, FACES)
+        with pytest.raises(ObjectNotFoundError, match="since been deleted or replaced"):
+            new.query(POINTS)
+        assert again.query(POINTS).frame == 0
+
+
+def test_reregister_of_a_served_object_gives_advice_it_can_follow(worker: ThreadWorker, client: Client) -> None:
+    """reregister() of an object still served said "pass replace=True", which reregister() does not take."""
+    obj = client.register("blob", VERTICES, FACES)
+    with pytest.raises(ObjectExistsError, match=r"still served.*Client.object\(name\)") as raised:
+        obj.reregister()
+    assert "pass replace=True" not in str(raised.value)
+    assert obj.query(POINTS).frame == 0  # the handle still works
+
+
+def test_frames_pending_when_a_replace_swaps_are_counted_dropped(
+        worker: ThreadWorker, client: Client, endpoint: str) -> None:
+    """A frame still pending for the old mesh when a replacement swapped the field in vanished from the
+    counters: 199 of 200 streamed frames were counted applied or dropped (thirteenth outside check)."""
+    obj = client.register("blob", VERTICES, FACES)
+    field, served = worker.fields[0], worker.running.objects()[0]
+    field.gate.clear()
+    obj.stream(VERTICES + 1)  # the object's thread takes frame 1 alone and waits at the gate
+    assert field.updates_started.acquire(timeout=20)
+    replaced: list = []
+    with Client(endpoint, timeout=30) as other:
+        replacing = threading.Thread(
+            target=lambda: replaced.append(other.register("blob", VERTICES * 3, FACES, replace=True)))
+        replacing.start()
+        wait_until(lambda: served.waiting_count == 1, what="the swap queued behind frame 1")
+        obj.stream(VERTICES + 2)  # taken with the swap, so applied before it
+        wait_until(lambda: served.pending_kinds == ("stream",), what="frame 2 pending")
+
+        def third_frame_while_the_second_applies(vertices: np.ndarray) -> None:
+            if vertices[0, 0] == VERTICES[0, 0] + 2:
+                obj.stream(VERTICES + 3)  # pending when the swap runs: dropped with the old mesh
+                wait_until(lambda: served.pending_kinds == ("stream",), what="frame 3 pending")
+
+        field.on_update = third_frame_while_the_second_applies
+        field.gate.set()
+        replacing.join(timeout=30)
+    assert len(replaced) == 1
+    totals = served.counters()  # the name's, the replaced registration's included
+    assert (totals.frames_applied, totals.frames_dropped, totals.frames_rejected) == (2, 1, 0)
+
+
+def test_two_replacements_racing_a_delete_both_succeed(endpoint: str) -> None:
+    """Two replace=True waiting behind a delete both found the object gone and fell back to creating it;
+    the second was refused "pass replace=True to swap it", which it had (thirteenth outside check). It now
+    swaps into the object the first created."""
+    with ThreadWorker(endpoint) as worker, Client(endpoint, timeout=30) as client:
+        first = client.register("blob", VERTICES, FACES)
+        field, served = worker.fields[0], worker.running.objects()[0]
+        field.gate.clear()
+        first.stream(VERTICES + 1)
+        assert field.updates_started.acquire(timeout=20)
+        deleting = threading.Thread(target=first.delete)
+        deleting.start()
+        wait_until(lambda: served.waiting_count == 1, what="the delete queued")
+        outcomes: list = []
+
+        def replace(scale: int) -> None:
+            with Client(endpoint, timeout=30) as other:
+                try:
+                    handle = other.register("blob", VERTICES * scale, FACES, replace=True)
+                except BadfError as error:
+                    outcomes.append(error)
+                    return
+                outcomes.append(scale)
+                swapped.wait(30)  # keep the client open until both are in
+                try:
+                    handle.query(POINTS)
+                    answered.append(scale)
+                except ObjectNotFoundError:  # the other replacement came after this one
+                    pass
+
+        swapped, answered = threading.Event(), []
+
+        replacing = [threading.Thread(target=replace, args=(scale,)) for scale in (3, 5)]
+        for thread in replacing:
+            thread.start()
+        wait_until(lambda: served.waiting_count == 3, what="both swaps queued behind the delete")
+        field.gate.set()
+        wait_until(lambda: len(outcomes) == 2, what="both replacements answered")
+        swapped.set()
+        for thread in [deleting, *replacing]:
+            thread.join(timeout=30)
+        assert sorted(outcomes) == [3, 5], outcomes
+        assert len(answered) == 1  # the later one's handle; the earlier one's registration was replaced
+        np.testing.assert_allclose(client.object("blob").query(POINTS).distance,
+                                   expected_distance(POINTS, VERTICES * answered[0]), rtol=1e-6)
+        assert [obj.name for obj in worker.running.objects()] == ["blob"]
+
+
 def test_shutdown_answers_waiting_requests(endpoint: str) -> None:
     with ThreadWorker(endpoint) as worker, Client(endpoint, timeout=20) as client:
         obj = client.register("blob", VERTICES, FACES)

@@ -461,9 +461,12 @@ class Viewer:
             due.restart()
         if due.info <= now:
             self._count_requests()
-            info = shown.remote.info()
-            if (info.worker, info.registration) != (shown.info.worker, shown.info.registration):
-                shown = self._open(chosen)  # registered again: its faces, depth and frame numbers may all differ
+            try:
+                info = shown.remote.info()
+            except ObjectNotFoundError:
+                # the handle's registration was deleted or replaced (a handle names its registration): open the
+                # name again, whose faces, depth and frame numbers may all differ; if it is gone, that raises
+                shown = self._open(chosen)
                 info = shown.info
             shown.info = info
             self._saw_frame(info.frame)
