@@ -168,6 +168,35 @@ def test_octree_invariants(device, name):
     assert counts["octree_nodes"] == len(levels)
 
 
+def test_large_triangles_oblique_to_the_axes_refine_every_cell_they_cross(device):
+    """Triangles many cells across are inserted row by row of their bounding box's columns, each column
+    over the cells their plane meets (one thread per triangle over the whole box tested up to resolution^3
+    cells in turn: a floor of two triangles at an angle to every axis). A tilted square, a long sliver
+    across the domain (whose plane is not trusted), a steep triangle and small ones beside them."""
+    u, v = np.array([1.0, -1.0, 0.0]) / np.sqrt(2), np.array([1.0, 1.0, -2.0]) / np.sqrt(6)
+    square = np.array([-u - v, u - v, u + v, -u + v])
+    sliver = np.array([[-0.9, -0.8, -0.7], [0.9, 0.8, 0.75], [0.9, 0.8 + 1e-5, 0.7]])
+    steep = np.array([[-0.9, 0.5, -0.9], [0.9, 0.52, 0.9], [-0.9, 0.9, 0.9]])
+    small = np.array([[0.1, 0.1, 0.1], [0.12, 0.1, 0.1], [0.1, 0.13, 0.11]])
+    vertices = np.concatenate([square, sliver, steep, small])
+    faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [7, 8, 9], [10, 11, 12]])
+    depth = 6
+    field = DistanceField(vertices, faces, depth=depth, halo=0, sign="none", device=device)
+    levels, cells = field.octree_cells()
+    finest = cells[levels == depth]
+    codes = _encode(finest, depth)
+    samples = meshes.surface_samples(vertices, faces, 200_000, np.random.default_rng(11))
+    assert np.all(np.isin(_encode(_cells_of(samples, field), depth), codes))
+    # and no cell the surface stays clear of: each one's centre lies within half its diagonal (and the
+    # overlap test's slack) of the triangles
+    centre, side = domain_of(field)
+    cell = side / (1 << depth)
+    centres = centre - side / 2 + (finest + 0.5) * cell
+    gap = oracle.nearest(centres, vertices, faces).distance
+    assert gap.max() <= cell * (np.sqrt(3) / 2 + 1e-2)
+    assert len(codes) == field.stats()["counts"]["surface_cells"]  # halo 0: the finest cells are those
+
+
 def test_centroid_rule_refines_only_centroid_cells(device):
     vertices, faces = meshes.box()  # 12 large triangles: most cells they cross hold no centroid
     depth = 5

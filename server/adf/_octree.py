@@ -41,6 +41,14 @@ _SLACK = wp.constant(CELL_OVERLAP_SLACK)
 # The most threads the halo pass launches. A first measuring pass sizes it by an estimate, which for a huge
 # mesh at depth 10 can pass what one launch should hold; its threads stride over the pairs beyond them.
 _HALO_THREADS = 1 << 24
+# A triangle whose normal's largest component is below this times its longest edge squared is a sliver:
+# its plane's direction is too uncertain in float32 to bound its cells column by column.
+_PLANE_MIN = wp.constant(1.0e-3)
+# A triangle whose bounding box is at most this many columns of cells across is inserted by one thread;
+# the rows of larger ones are shared out among the insert's threads.
+_SMALL_COLUMNS = wp.constant(16)
+# Threads beyond the triangles' own for those shared rows, on a GPU (the CPU runs threads in turn anyway).
+_ROW_THREADS = 1 << 15
 _EVERYWHERE = 3.0e38  # the region box of an object without a region of interest
 
 
@@ -177,10 +185,22 @@ class Octree:
         expected = min(expected, resolution**3)
 
         lower, upper = self.region_cells
+        if self.refine == "surface":
+            # each triangle's rows of columns of cells, counted and summed, so the insert's threads share them
+            rows = self.buffers.ensure("oct.rows", face_count, wp.int32)
+            row_ends = self.buffers.ensure("oct.row_ends", face_count, wp.int32)
+            wp.launch(_count_surface_rows, dim=face_count,
+                      inputs=[vertices, faces, origin, cell, resolution, lower, upper], outputs=[rows],
+                      device=self.device)
+            wp.utils.array_scan(rows, row_ends, inclusive=True)
+            threads = face_count + (_ROW_THREADS if self.device.is_cuda else 0)
+            launch = (threads, [vertices, faces, face_count, row_ends, origin, cell, resolution, shift, lower,
+                                upper, threads])
+        else:
+            launch = (face_count, [vertices, faces, origin, cell, resolution, shift, lower, upper])
 
         def insert(table: HashSetView) -> None:
-            wp.launch(kernel, dim=face_count, inputs=[vertices, faces, origin, cell, resolution, shift, lower, upper,
-                                                      table], device=self.device)
+            wp.launch(kernel, dim=launch[0], inputs=[*launch[1], table], device=self.device)
             if self.has_region:  # one the surface stays out of would leave no cell: keep one, at its corner
                 wp.launch(_insert_if_none, dim=1, inputs=[table, lower, shift], device=self.device)
             if halo > 0:
@@ -416,36 +436,173 @@ def _link_children(
         first_child[parent] = j
 
 
+@wp.func
+def _cell_range_lower(a: wp.vec3, b: wp.vec3, c: wp.vec3, origin: wp.vec3, cell: float, resolution: int,
+                      region_lower: wp.vec3i) -> wp.vec3i:
+    """The lowest finest cell (per axis) the triangle's padded bounding box reaches, within the region's."""
+    pad = wp.vec3(_SLACK * cell)
+    return wp.max(quantize(wp.min(wp.min(a, b), c) - pad, origin, 1.0 / cell, resolution), region_lower)
+
+
+@wp.func
+def _cell_range_upper(a: wp.vec3, b: wp.vec3, c: wp.vec3, origin: wp.vec3, cell: float, resolution: int,
+                      region_upper: wp.vec3i) -> wp.vec3i:
+    pad = wp.vec3(_SLACK * cell)
+    return wp.min(quantize(wp.max(wp.max(a, b), c) + pad, origin, 1.0 / cell, resolution), region_upper)
+
+
+@wp.func
+def _column_axis(n: wp.vec3) -> int:
+    """The axis a triangle of normal n is walked along: its normal's largest component (0 for n = 0)."""
+    m = wp.abs(n)
+    if m[2] > m[0] and m[2] > m[1]:
+        return 2
+    if m[1] > m[0]:
+        return 1
+    return 0
+
+
+@wp.func
+def _lattice(axis: int, u: int, v: int, w: int) -> wp.vec3i:
+    """Cell (x, y, z) from its coordinates across (u, v: the axes after `axis`, in turn) and along `axis`."""
+    if axis == 0:
+        return wp.vec3i(w, u, v)
+    if axis == 1:
+        return wp.vec3i(v, w, u)
+    return wp.vec3i(u, v, w)
+
+
+@wp.kernel(enable_backward=False)
+def _count_surface_rows(
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.vec3i),
+    origin: wp.vec3,
+    cell: float,
+    resolution: int,
+    region_lower: wp.vec3i,
+    region_upper: wp.vec3i,
+    rows: wp.array(dtype=wp.int32),
+):
+    # the rows of columns of cells across a large triangle's bounding box, seen along its normal's largest
+    # axis; 0 for a triangle its own thread takes whole (the insert's)
+    f = wp.tid()
+    tri = faces[f]
+    a = vertices[tri[0]]
+    b = vertices[tri[1]]
+    c = vertices[tri[2]]
+    lo = _cell_range_lower(a, b, c, origin, cell, resolution, region_lower)
+    hi = _cell_range_upper(a, b, c, origin, cell, resolution, region_upper)
+    w = _column_axis(wp.cross(b - a, c - a))
+    u = (w + 1) % 3
+    v = (w + 2) % 3
+    count = int(0)
+    if hi[0] >= lo[0] and hi[1] >= lo[1] and hi[2] >= lo[2]:
+        if (hi[u] - lo[u] + 1) * (hi[v] - lo[v] + 1) > _SMALL_COLUMNS:
+            count = hi[u] - lo[u] + 1
+    rows[f] = count
+
+
+@wp.func
+def _insert_row(a: wp.vec3, b: wp.vec3, c: wp.vec3, row: int, origin: wp.vec3, cell: float, resolution: int,
+                shift: int, region_lower: wp.vec3i, region_upper: wp.vec3i, table: HashSetView):
+    """Insert the finest cells the triangle overlaps (separating axes) in one row of its bounding box's
+    columns: seen along its normal's largest axis w, row `row` (counted from the box's lowest) along u.
+    Each column meets the triangle's plane over at most 2 cells plus its slack; a sliver, whose plane is not
+    known well enough in float32, takes its bounding box's whole column."""
+    lo = _cell_range_lower(a, b, c, origin, cell, resolution, region_lower)
+    hi = _cell_range_upper(a, b, c, origin, cell, resolution, region_upper)
+    n = wp.cross(b - a, c - a)
+    w = _column_axis(n)
+    u = (w + 1) % 3
+    v = (w + 2) % 3
+    cu = lo[u] + row
+    half = 0.5 * cell + _SLACK * cell
+    longest = wp.max(wp.max(wp.length_sq(b - a), wp.length_sq(c - a)), wp.length_sq(c - b))
+    # a box at most 3 cells deep along w gains nothing from the plane (most triangles, smaller than a cell)
+    planar = hi[w] - lo[w] > 2 and wp.abs(n[w]) >= _PLANE_MIN * longest and n[w] != 0.0
+    su = float(0.0)
+    sv = float(0.0)
+    if planar:
+        su = n[u] / n[w]
+        sv = n[v] / n[w]
+    inv_cell = 1.0 / cell
+    top = float(resolution) + 1.0
+    u0 = origin[u] + (float(cu) - _SLACK) * cell - a[u]
+    u1 = origin[u] + (float(cu) + 1.0 + _SLACK) * cell - a[u]
+    for cv in range(lo[v], hi[v] + 1):
+        w_lo = lo[w]
+        w_hi = hi[w]
+        if planar:
+            # the plane's extent along w over the column grown by the slack, plus a cell each way for rounding;
+            # clamped in floats first, as a steep plane's far corners can pass what an int holds
+            v0 = origin[v] + (float(cv) - _SLACK) * cell - a[v]
+            v1 = origin[v] + (float(cv) + 1.0 + _SLACK) * cell - a[v]
+            w00 = a[w] - su * u0 - sv * v0
+            w10 = a[w] - su * u1 - sv * v0
+            w01 = a[w] - su * u0 - sv * v1
+            w11 = a[w] - su * u1 - sv * v1
+            low = (wp.min(wp.min(w00, w10), wp.min(w01, w11)) - origin[w]) * inv_cell
+            high = (wp.max(wp.max(w00, w10), wp.max(w01, w11)) - origin[w]) * inv_cell
+            w_lo = wp.max(w_lo, int(wp.floor(wp.clamp(low, -2.0, top))) - 1)
+            w_hi = wp.min(w_hi, int(wp.floor(wp.clamp(high, -2.0, top))) + 1)
+        for cw in range(w_lo, w_hi + 1):
+            lattice = _lattice(w, cu, cv, cw)
+            centre = origin + wp.vec3(float(lattice[0]) + 0.5, float(lattice[1]) + 0.5, float(lattice[2]) + 0.5) * cell
+            if triangle_overlaps_cube(a, b, c, centre, half):
+                set_insert(table, morton3(lattice[0], lattice[1], lattice[2]) << wp.int64(shift))
+
+
 @wp.kernel(enable_backward=False)
 def _insert_surface_cells(
     vertices: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.vec3i),
+    face_count: int,
+    row_ends: wp.array(dtype=wp.int32),
     origin: wp.vec3,
     cell: float,
     resolution: int,
     shift: int,
     region_lower: wp.vec3i,
     region_upper: wp.vec3i,
+    stride: int,
     table: HashSetView,
 ):
-    # every finest cell the triangle overlaps (separating axes), tested over the triangle's bounding box
-    # within the region's cells
-    f = wp.tid()
-    tri = faces[f]
-    a = vertices[tri[0]]
-    b = vertices[tri[1]]
-    c = vertices[tri[2]]
-    pad = wp.vec3(_SLACK * cell)
-    inv_cell = 1.0 / cell
-    lo = wp.max(quantize(wp.min(wp.min(a, b), c) - pad, origin, inv_cell, resolution), region_lower)
-    hi = wp.min(quantize(wp.max(wp.max(a, b), c) + pad, origin, inv_cell, resolution), region_upper)
-    half = 0.5 * cell + _SLACK * cell
-    for x in range(lo[0], hi[0] + 1):
-        for y in range(lo[1], hi[1] + 1):
-            for z in range(lo[2], hi[2] + 1):
-                centre = origin + wp.vec3(float(x) + 0.5, float(y) + 0.5, float(z) + 0.5) * cell
-                if triangle_overlaps_cube(a, b, c, centre, half):
-                    set_insert(table, morton3(x, y, z) << wp.int64(shift))
+    # Every finest cell a triangle overlaps. Thread f takes triangle f whole when its bounding box is at most
+    # _SMALL_COLUMNS columns across (nearly every triangle of a fine mesh); the rows of the larger ones are
+    # shared out, row i = tid, tid + stride, ... belonging to the first triangle whose running row count
+    # passes i. One thread per triangle over its whole bounding box had a large triangle oblique to the axes
+    # test up to resolution^3 cells in turn (a floor of two triangles).
+    i = wp.tid()
+    if i < face_count:
+        if row_ends[i] == wp.where(i > 0, row_ends[wp.max(i - 1, 0)], 0):  # none of its rows are shared out
+            tri = faces[i]
+            a = vertices[tri[0]]
+            b = vertices[tri[1]]
+            c = vertices[tri[2]]
+            lo = _cell_range_lower(a, b, c, origin, cell, resolution, region_lower)
+            hi = _cell_range_upper(a, b, c, origin, cell, resolution, region_upper)
+            if hi[0] >= lo[0] and hi[1] >= lo[1] and hi[2] >= lo[2]:
+                w = _column_axis(wp.cross(b - a, c - a))
+                u = (w + 1) % 3
+                for row in range(hi[u] - lo[u] + 1):
+                    _insert_row(a, b, c, row, origin, cell, resolution, shift, region_lower, region_upper, table)
+    total = row_ends[face_count - 1]
+    while i < total:
+        first = int(0)
+        last = face_count - 1
+        while first < last:
+            middle = (first + last) // 2
+            if row_ends[middle] > i:
+                last = middle
+            else:
+                first = middle + 1
+        start = int(0)
+        if first > 0:
+            start = row_ends[first - 1]
+        tri = faces[first]
+        _insert_row(vertices[tri[0]], vertices[tri[1]], vertices[tri[2]], i - start, origin, cell, resolution, shift,
+                    region_lower, region_upper, table)
+        i += stride
 
 
 @wp.kernel(enable_backward=False)
