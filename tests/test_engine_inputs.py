@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -20,6 +22,9 @@ VERTICES, FACES = meshes.single_triangle()
         ({"vertices": np.array([["a", "b", "c"]] * 3)}, "must hold numbers"),
         ({"vertices": np.zeros((0, 3))}, "vertices must not be empty"),
         ({"vertices": np.zeros((3, 3))}, "zero extent"),
+        # answers are float32 in world units: at size 1e-45 they were off by 0.2 of the diagonal, at 1e-60
+        # every one was 0.0 (thirteenth outside check)
+        ({"vertices": VERTICES * 1e-45}, r"extent is 1.4e-45; meshes smaller than 1e-40 are refused"),
         # the faces use one vertex of a spread mesh: the message names the faces' vertices, not all of them
         ({"vertices": np.eye(3), "faces": np.zeros((1, 3), np.int32)}, "the vertices the faces use must not"),
         ({"vertices": np.array([[0, 0, 0], [1e19, 0, 0], [0, 1, 0]])}, r"within \+-1e\+18"),
@@ -62,6 +67,7 @@ def test_bad_frames_and_queries_leave_the_field_as_it_was(device):
         (np.where(np.arange(len(vertices))[:, None] == 5, np.nan, vertices), "must be finite"),
         (vertices.astype(str), "must hold numbers"),
         (vertices.reshape(-1), r"shape \(count, 3\)"),
+        (vertices * 1e-42, "meshes smaller than 1e-40 are refused"),
     ]
     for frame, message in bad_frames:
         with pytest.raises(InvalidInputError, match=message):
@@ -265,3 +271,17 @@ def test_a_band_below_the_floor_is_refused_as_engine_md_says(device):
                if line.startswith("| `band` |"))
     assert "at least 2^-40 of the domain's side" in row.split("|")[2]
     assert "a smaller band raises `InvalidInputError`" in row
+
+
+def test_a_far_unused_vertex_beside_a_tiny_mesh_warns_of_nothing(device):
+    """A vertex no face uses, at 1e18 beside a mesh of size 1e-24, passed float32's range in local coordinates:
+    numpy's overflow warning reached the caller, though nothing reads that vertex (thirteenth outside check)."""
+    vertices, faces = meshes.load("sphere")
+    for dtype in (np.float64, np.float32):
+        parked = np.vstack([vertices * 1e-24, [[1e18, 1e18, 1e18]]]).astype(dtype)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            field = DistanceField(parked, faces, depth=3, device=device)
+            field.update(parked)
+            distance = field.query(vertices[:4].astype(np.float64) * 1.5e-24, mode="exact").distance
+        np.testing.assert_allclose(distance, 0.5e-24, rtol=1e-5)

@@ -27,6 +27,7 @@ from badf.server.adf._distance import (
 )
 from badf.server.adf._inputs import (
     MAX_COORDINATE,
+    MIN_EXTENT,
     QUERY_MODES,
     REFINEMENTS,
     InvalidInputError,
@@ -153,9 +154,13 @@ class _Domain:
     @staticmethod
     def fit(lo: np.ndarray, hi: np.ndarray, previous: _Domain | None = None) -> _Domain:
         extent = float(np.max(hi - lo))
-        if extent > 0.0:
+        if extent >= MIN_EXTENT:
             side = extent * (1.0 + 2.0 * DOMAIN_MARGIN)
-        elif previous is not None:
+        elif extent > 0.0:
+            raise InvalidInputError(
+                f"the mesh's extent is {extent:.3g}; meshes smaller than {MIN_EXTENT:g} are refused (answers are "
+                "float32 in world units, whose smallest step, 1.4e-45, would pass 1e-5 of its size): scale it up")
+        elif previous is not None:  # a frame that collapses to a point keeps the cube's size
             side = previous.side
         else:
             raise InvalidInputError("the vertices the faces use must not all coincide: the mesh has zero extent")
@@ -180,11 +185,14 @@ class _Domain:
     def to_local(self, points: np.ndarray) -> np.ndarray:
         """Local float32 coordinates of world points, recentred in their own precision (float64 stays exact;
         float32 goes through float64 where the centre or the scale is not a float32 number)."""
-        if self.recentres_float32:
-            local = (points - self.centre.astype(points.dtype)) * self.scale
-        else:
-            local = self.to_local_float64(points)  # numpy would round float32 offsets to float32
-        return np.ascontiguousarray(local, dtype=np.float32)
+        # a vertex no face uses may lie far enough (1e18 beside a mesh of 1e-24) to pass float32's range here: it
+        # becomes Inf, which nothing reads, and numpy's overflow warning is not the caller's concern
+        with np.errstate(over="ignore"):
+            if self.recentres_float32:
+                local = (points - self.centre.astype(points.dtype)) * self.scale
+            else:
+                local = self.to_local_float64(points)  # numpy would round float32 offsets to float32
+            return np.ascontiguousarray(local, dtype=np.float32)
 
     @property
     def recentres_float32(self) -> bool:
@@ -315,8 +323,11 @@ class DistanceField:
         self._frame = 0
         self._counters = _Counters()
 
+        # the first frame's cell set is sized from the surface area it may refine: a region's share of it (a
+        # small box at depth 10 kept 452 MiB of scratch sized for the whole mesh; thirteenth outside check)
+        refined_area = area if self._region is None else self._area_near_region(local, f, face_area)
         with _device_lock(self._device):
-            self._build(local, f, len(v), area, extent)
+            self._build(local, f, len(v), refined_area, extent)
             # parts nested or running into each other are signed by winding numbers (surface_enters_solid):
             # every frame, if they are in the first; else each frame they are found to be, from then on
             self._parts_overlap = False
@@ -332,6 +343,14 @@ class DistanceField:
                 self._normals = Pseudonormals(self._sign, self._topology, self._faces, self._buffers)
                 self._planned, self._counters = False, _Counters()
                 self._apply(local, extent, domain_moved=True)
+
+    def _area_near_region(self, local: np.ndarray, f: np.ndarray, face_area: np.ndarray) -> float:
+        """The area of the faces whose bounding boxes come within the halo (and a cell) of the region."""
+        reach = (self._halo + 1) * self._domain.local_side / (1 << self._depth)
+        box = self._domain.to_local_float64(self._region)
+        corners = local[f]
+        near = np.all((corners.max(axis=1) >= box[0] - reach) & (corners.min(axis=1) <= box[1] + reach), axis=1)
+        return float(face_area[near].sum())
 
     def _bounds(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The bounds of the vertices that faces use."""

@@ -10,6 +10,10 @@ from badf.server.adf._tolerances import MAX_DEPTH, MAX_FACES, MAX_HALO, MAX_VERT
 
 # Coordinates beyond this magnitude would overflow float32 when squared inside the distance kernels.
 MAX_COORDINATE = 1.0e18
+# Meshes smaller than this are refused: answers are float32 in world units, subnormal below 1.2e-38 and
+# spaced 1.4e-45 apart, which is 1e-5 of a size of 1.4e-40 (thirteenth outside check: at size 1e-45 exact
+# distances were off by 0.2 of the diagonal, and at 1e-60 every one was 0.0).
+MIN_EXTENT = 1.0e-40
 
 QUERY_MODES: tuple[str, ...] = ("adf", "exact")
 QUERY_OUTPUTS: tuple[str, ...] = ("distance", "closest_point", "normal", "face")
@@ -138,8 +142,8 @@ def check_region(region) -> np.ndarray | None:
     arr = _numeric_array(region, "region")
     if arr.shape != (2, 3):
         raise InvalidInputError(f"region must have shape (2, 3) (its lowest corner, then its highest), got {arr.shape}")
+    _check_finite(arr, "region")  # before float64, which would make a long double's 1e4000 an Inf and tell it so
     arr = arr.astype(np.float64)
-    _check_finite(arr, "region")
     reversed_axes = np.flatnonzero(arr[0] > arr[1])
     if len(reversed_axes):
         k = int(reversed_axes[0])

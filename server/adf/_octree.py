@@ -128,7 +128,12 @@ class Octree:
         lower = np.clip(np.floor(lattice[0]) - self.halo, 0, top).astype(int)
         upper = np.clip(np.floor(lattice[1]) + self.halo, 0, top).astype(int)
         self.region_cells = (wp.vec3i(*lower.tolist()), wp.vec3i(*upper.tolist()))
-        self.region_box = (wp.vec3(*box[0].tolist()), wp.vec3(*box[1].tolist()))
+        # rounded inward past float32's rounding of its own corners: a point outside the box in float64 is
+        # outside it in float32 too, and answered exactly (one just outside a face was interpolated before,
+        # as its float32 coordinate rounded onto the face; thirteenth outside check)
+        lower = np.nextafter(box[0].astype(np.float32), np.float32(np.inf))
+        upper = np.nextafter(box[1].astype(np.float32), np.float32(-np.inf))
+        self.region_box = (wp.vec3(*lower.tolist()), wp.vec3(*upper.tolist()))
 
     def build(self, vertices: wp.array, faces: wp.array, face_count: int, origin: wp.vec3, side: float, clock,
               *, measure: bool) -> None:
