@@ -569,12 +569,12 @@ def _insert_surface_cells(
     shift: int,
     region_lower: wp.vec3i,
     region_upper: wp.vec3i,
-    stride: int,
+    threads: int,
     table: HashSetView,
 ):
     # Every finest cell a triangle overlaps. Thread f takes triangle f whole when its bounding box is at most
     # _SMALL_COLUMNS columns across (nearly every triangle of a fine mesh); the rows of the larger ones are
-    # shared out, row i = tid, tid + stride, ... belonging to the first triangle whose running row count
+    # shared out, a run of them per thread, row i belonging to the first triangle whose running row count
     # passes i. One thread per triangle over its whole bounding box had a large triangle oblique to the axes
     # test up to resolution^3 cells in turn (a floor of two triangles).
     i = wp.tid()
@@ -592,7 +592,12 @@ def _insert_surface_cells(
                 for row in range(hi[u] - lo[u] + 1):
                     _insert_row(a, b, c, row, origin, cell, resolution, shift, region_lower, region_upper, table)
     total = row_ends[face_count - 1]
-    while i < total:
+    # each thread takes a run of rows in turn, so the rows of one triangle go in order (the CPU runs the
+    # threads one after the other: rows taken by stride scattered its inserts over the set)
+    per = (total + threads - 1) // threads
+    i = wp.tid() * per
+    end = wp.min(i + per, total)
+    while i < end:
         first = int(0)
         last = face_count - 1
         while first < last:
@@ -607,7 +612,7 @@ def _insert_surface_cells(
         tri = faces[first]
         _insert_row(vertices[tri[0]], vertices[tri[1]], vertices[tri[2]], i - start, origin, cell, resolution, shift,
                     region_lower, region_upper, table)
-        i += stride
+        i += 1
 
 
 @wp.kernel(enable_backward=False)
