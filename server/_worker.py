@@ -385,13 +385,12 @@ class Worker:
                 raise ObjectExistsError(
                     f"object {request.name!r} was registered on worker {self.worker_id} while this registration "
                     "was built; pass replace=True to swap it")
-        replaced = existing is not None
         with self._lock:
             self._registered_total += 1
         resolved_sign = info.field_info.get("sign", request.options.sign)
         log.info(
             "%s %r: %d vertices, %d faces, depth %d, sign %s, frame %d, built in %.1f ms on %s",
-            "replaced" if replaced else "registered",
+            "replaced" if existing is not None else "registered",
             request.name, info.vertex_count, info.face_count, request.options.depth, resolved_sign,
             request.frame, build_ms, self.device,
         )  # fmt: skip

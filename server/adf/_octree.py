@@ -199,7 +199,7 @@ class Octree:
                       device=self.device)
             wp.utils.array_scan(rows, row_ends, inclusive=True)
             threads = face_count + (_ROW_THREADS if self.device.is_cuda else 0)
-            launch = (threads, [vertices, faces, face_count, row_ends, origin, cell, resolution, shift, lower,
+            launch = (threads, [vertices, faces, face_count, rows, row_ends, origin, cell, resolution, shift, lower,
                                 upper, threads])
         else:
             launch = (face_count, [vertices, faces, origin, cell, resolution, shift, lower, upper])
@@ -477,6 +477,21 @@ def _lattice(axis: int, u: int, v: int, w: int) -> wp.vec3i:
     return wp.vec3i(u, v, w)
 
 
+@wp.func
+def _rows_across(a: wp.vec3, b: wp.vec3, c: wp.vec3, origin: wp.vec3, cell: float, resolution: int,
+                 region_lower: wp.vec3i, region_upper: wp.vec3i) -> wp.vec2i:
+    """(rows, columns per row) of the triangle's bounding box of cells seen along its normal's largest axis
+    (rows along the axis after it); (0, 0) where the box misses the region's cells."""
+    lo = _cell_range_lower(a, b, c, origin, cell, resolution, region_lower)
+    hi = _cell_range_upper(a, b, c, origin, cell, resolution, region_upper)
+    if hi[0] < lo[0] or hi[1] < lo[1] or hi[2] < lo[2]:
+        return wp.vec2i(0, 0)
+    w = _column_axis(wp.cross(b - a, c - a))
+    u = (w + 1) % 3
+    v = (w + 2) % 3
+    return wp.vec2i(hi[u] - lo[u] + 1, hi[v] - lo[v] + 1)
+
+
 @wp.kernel(enable_backward=False)
 def _count_surface_rows(
     vertices: wp.array(dtype=wp.vec3),
@@ -488,22 +503,15 @@ def _count_surface_rows(
     region_upper: wp.vec3i,
     rows: wp.array(dtype=wp.int32),
 ):
-    # the rows of columns of cells across a large triangle's bounding box, seen along its normal's largest
-    # axis; 0 for a triangle its own thread takes whole (the insert's)
+    # the rows of a large triangle's bounding box, shared out by the insert; 0 for a triangle its own
+    # thread takes whole
     f = wp.tid()
     tri = faces[f]
-    a = vertices[tri[0]]
-    b = vertices[tri[1]]
-    c = vertices[tri[2]]
-    lo = _cell_range_lower(a, b, c, origin, cell, resolution, region_lower)
-    hi = _cell_range_upper(a, b, c, origin, cell, resolution, region_upper)
-    w = _column_axis(wp.cross(b - a, c - a))
-    u = (w + 1) % 3
-    v = (w + 2) % 3
+    span = _rows_across(vertices[tri[0]], vertices[tri[1]], vertices[tri[2]], origin, cell, resolution,
+                        region_lower, region_upper)
     count = int(0)
-    if hi[0] >= lo[0] and hi[1] >= lo[1] and hi[2] >= lo[2]:
-        if (hi[u] - lo[u] + 1) * (hi[v] - lo[v] + 1) > _SMALL_COLUMNS:
-            count = hi[u] - lo[u] + 1
+    if span[0] * span[1] > _SMALL_COLUMNS:
+        count = span[0]
     rows[f] = count
 
 
@@ -562,6 +570,7 @@ def _insert_surface_cells(
     vertices: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.vec3i),
     face_count: int,
+    rows: wp.array(dtype=wp.int32),
     row_ends: wp.array(dtype=wp.int32),
     origin: wp.vec3,
     cell: float,
@@ -579,18 +588,14 @@ def _insert_surface_cells(
     # test up to resolution^3 cells in turn (a floor of two triangles).
     i = wp.tid()
     if i < face_count:
-        if row_ends[i] == wp.where(i > 0, row_ends[wp.max(i - 1, 0)], 0):  # none of its rows are shared out
+        if rows[i] == 0:  # none of its rows are shared out
             tri = faces[i]
             a = vertices[tri[0]]
             b = vertices[tri[1]]
             c = vertices[tri[2]]
-            lo = _cell_range_lower(a, b, c, origin, cell, resolution, region_lower)
-            hi = _cell_range_upper(a, b, c, origin, cell, resolution, region_upper)
-            if hi[0] >= lo[0] and hi[1] >= lo[1] and hi[2] >= lo[2]:
-                w = _column_axis(wp.cross(b - a, c - a))
-                u = (w + 1) % 3
-                for row in range(hi[u] - lo[u] + 1):
-                    _insert_row(a, b, c, row, origin, cell, resolution, shift, region_lower, region_upper, table)
+            span = _rows_across(a, b, c, origin, cell, resolution, region_lower, region_upper)
+            for row in range(span[0]):
+                _insert_row(a, b, c, row, origin, cell, resolution, shift, region_lower, region_upper, table)
     total = row_ends[face_count - 1]
     # each thread takes a run of rows in turn, so the rows of one triangle go in order (the CPU runs the
     # threads one after the other: rows taken by stride scattered its inserts over the set)
