@@ -150,6 +150,12 @@ def _check_shapes(
 
 def _canonical(owner: str, slot: _Slot, array: np.ndarray) -> np.ndarray:
     """`array` in the slot's canonical dtype, C-ordered; no copy when it already is."""
+    if array.dtype.kind == "O" and array.size and all(type(x) in (int, float) for x in array.flat):
+        # Python ints past 64 bits leave numpy an object array: tell the value, not only "got object"
+        big = max((x for x in array.flat if type(x) is int), key=abs, default=0)
+        if abs(big) >= 2**63:
+            error = IndexRangeError if slot.element != "float" else DtypeError
+            raise error(f"{owner}.{slot.name} holds an integer past 64 bits (one of {abs(big).bit_length()} bits)")
     if array.dtype.kind not in _LOCAL_KINDS[slot.element]:
         wanted = "numbers" if slot.element == "float" else "integers"
         raise DtypeError(f"{owner}.{slot.name} must hold {wanted} ({_CANONICAL[slot.element]}), got {array.dtype}")

@@ -32,6 +32,10 @@ VERTICES, FACES = meshes.single_triangle()
         pytest.param({"vertices": np.array([[0, 0, 0], [np.longdouble("1e400"), 0, 0], [0, 1, 0]], np.longdouble)},
                      r"within \+-1e\+18, got a coordinate of 1.e\+400",
                      marks=pytest.mark.skipif(np.finfo(np.longdouble).max < 1e300, reason="long double is float64 here")),
+        # numpy keeps Python ints past 64 bits as objects, which were told only as "dtype object"
+        ({"vertices": [[0, 0, 0], [2**64, 0, 0], [0, 1, 0]]}, "a coordinate past 64-bit integers"),
+        ({"vertices": [[0, 0, 0], [0.5, -(10**5000), 0], [0, 1, 0]]}, "past 64-bit integers .one of 16610 bits"),
+        ({"faces": [[0, 1, 2**64]]}, "faces: an index past 64-bit integers"),
         ({"faces": np.array([[0, 1, 3]])}, r"faces must index vertices 0..2, got indices in \[0, 3\]"),
         ({"faces": np.array([[0, 1, -1]])}, "first at row 0"),
         ({"faces": np.zeros((0, 3), int)}, "faces must not be empty"),
@@ -75,6 +79,7 @@ def test_bad_frames_and_queries_leave_the_field_as_it_was(device):
     bad_queries = [
         ({"points": points[:, :2]}, r"points must have shape \(count, 3\), got \(50, 2\)"),
         ({"points": np.full((2, 3), np.inf)}, "points must be finite"),
+        ({"points": [[0, 0, -(2**70)]]}, "points: a coordinate past 64-bit integers"),
         ({"mode": "fast"}, "mode must be one of adf, exact"),
         ({"outputs": ("distance", "curvature")}, r"unknown outputs \['curvature'\]"),
         ({"outputs": ()}, "outputs must name at least one"),

@@ -321,6 +321,16 @@ def test_face_index_out_of_range() -> None:
         )
 
 
+def test_python_ints_past_64_bits_are_named() -> None:
+    # numpy leaves such ints an object array, which was told only as "got object"
+    with pytest.raises(DtypeError, match="QueryRequest.points holds an integer past 64 bits .one of 71 bits"):
+        QueryRequest("a", [[0.5, 0, 2**70]])
+    faces = FACES.tolist()
+    faces[0][0] = -(2**64)
+    with pytest.raises(IndexRangeError, match="RegisterRequest.faces holds an integer past 64 bits"):
+        RegisterRequest("a", VERTICES, faces)
+
+
 def test_limits_from_the_header() -> None:
     counts = Limits(max_vertices=10, max_faces=10, max_points=5, max_slice_resolution=8)
     eleven_faces = np.array([[0, 1, 2]] * 11, dtype=np.int32)

@@ -27,12 +27,24 @@ class InvalidInputError(ValueError):
 def _numeric_array(value, name: str) -> np.ndarray:
     try:
         arr = np.asarray(value)
-    except (TypeError, ValueError) as error:
+    except (TypeError, ValueError, OverflowError) as error:
         raise InvalidInputError(f"{name} must be an array of numbers: {error}") from None
+    big = _python_int_past_64_bits(arr)
+    if big is not None:  # numpy keeps such ints as objects: name the value, not only "dtype object"
+        told = "an index" if name == "faces" else "a coordinate"
+        raise InvalidInputError(f"{name}: {told} past 64-bit integers (one of {abs(big).bit_length()} bits)")
     if arr.dtype.kind not in "fiu":
         kinds = "integers" if name == "faces" else "numbers (float or int)"
         raise InvalidInputError(f"{name} must hold {kinds}, got dtype {arr.dtype}")
     return arr
+
+
+def _python_int_past_64_bits(arr: np.ndarray) -> int | None:
+    """The largest Python int of an object array of Python numbers, where it passes 64 bits; else None."""
+    if arr.dtype.kind != "O" or arr.size == 0 or not all(type(x) in (int, float) for x in arr.flat):
+        return None
+    big = max((x for x in arr.flat if type(x) is int), key=abs, default=0)
+    return big if abs(big) >= 2**63 else None
 
 
 def _check_finite(arr: np.ndarray, name: str) -> None:
