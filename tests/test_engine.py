@@ -197,6 +197,30 @@ def test_large_triangles_oblique_to_the_axes_refine_every_cell_they_cross(device
     assert len(codes) == field.stats()["counts"]["surface_cells"]  # halo 0: the finest cells are those
 
 
+@pytest.mark.parametrize("limit", [0, 10])
+def test_rows_left_over_a_cap_on_shared_rows_are_refined_all_the_same(device, monkeypatch, limit):
+    """The rows shared out are capped so their int32 running sums cannot wrap (a mesh of millions of large
+    triangles); each triangle's own thread takes the rest. Capped to none, and to two rows per triangle
+    (10 over 5 triangles), the octree and the field are the same as uncapped."""
+    from badf.server.adf import _octree
+
+    u, v = np.array([1.0, -1.0, 0.0]) / np.sqrt(2), np.array([1.0, 1.0, -2.0]) / np.sqrt(6)
+    vertices = np.concatenate([[-u - v, u - v, u + v, -u + v], [[-0.9, -0.8, -0.7], [0.9, 0.8, 0.75],
+                                                                [0.9, 0.8 + 1e-5, 0.7]], meshes.box()[0] * 0.3])
+    faces = np.concatenate([[[0, 1, 2], [0, 2, 3], [4, 5, 6]], meshes.box()[1][:2] + 7])
+    points = np.random.default_rng(3).uniform(-1.2, 1.2, size=(2000, 3))
+    fields = []
+    for cap in (None, limit):
+        if cap is not None:
+            monkeypatch.setattr(_octree, "_ROW_SUM_LIMIT", cap)
+        field = DistanceField(vertices, faces, depth=6, sign="none", device=device)
+        field.update(vertices + 0.01)  # a planned frame as well as the measured build
+        fields.append(field)
+    (levels, cells), (capped_levels, capped_cells) = (f.octree_cells() for f in fields)
+    assert np.array_equal(np.sort(_encode(cells, levels)), np.sort(_encode(capped_cells, capped_levels)))
+    np.testing.assert_array_equal(fields[0].query(points).distance, fields[1].query(points).distance)
+
+
 def test_centroid_rule_refines_only_centroid_cells(device):
     vertices, faces = meshes.box()  # 12 large triangles: most cells they cross hold no centroid
     depth = 5

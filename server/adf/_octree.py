@@ -49,6 +49,10 @@ _PLANE_MIN = wp.constant(1.0e-3)
 _SMALL_COLUMNS = wp.constant(16)
 # Threads beyond the triangles' own for those shared rows, on a GPU (the CPU runs threads in turn anyway).
 _ROW_THREADS = 1 << 15
+# The most rows shared out in all, as their running sums are int32: each triangle shares at most this over
+# the triangle count, and its own thread takes the rest (only a mesh of millions of triangles each more than
+# _SMALL_COLUMNS columns across comes near; its sums would otherwise wrap and its rows go unrefined).
+_ROW_SUM_LIMIT = (1 << 31) - 1
 _EVERYWHERE = 3.0e38  # the region box of an object without a region of interest
 
 
@@ -195,8 +199,8 @@ class Octree:
             rows = self.buffers.ensure("oct.rows", face_count, wp.int32)
             row_ends = self.buffers.ensure("oct.row_ends", face_count, wp.int32)
             wp.launch(_count_surface_rows, dim=face_count,
-                      inputs=[vertices, faces, origin, cell, resolution, lower, upper], outputs=[rows],
-                      device=self.device)
+                      inputs=[vertices, faces, origin, cell, resolution, lower, upper, _ROW_SUM_LIMIT // face_count],
+                      outputs=[rows], device=self.device)
             wp.utils.array_scan(rows, row_ends, inclusive=True)
             threads = face_count + (_ROW_THREADS if self.device.is_cuda else 0)
             launch = (threads, [vertices, faces, face_count, rows, row_ends, origin, cell, resolution, shift, lower,
@@ -501,17 +505,18 @@ def _count_surface_rows(
     resolution: int,
     region_lower: wp.vec3i,
     region_upper: wp.vec3i,
+    most_shared: int,
     rows: wp.array(dtype=wp.int32),
 ):
-    # the rows of a large triangle's bounding box, shared out by the insert; 0 for a triangle its own
-    # thread takes whole
+    # the rows of a large triangle's bounding box shared out by the insert, up to most_shared (its own thread
+    # takes the rest); 0 for a triangle its own thread takes whole
     f = wp.tid()
     tri = faces[f]
     span = _rows_across(vertices[tri[0]], vertices[tri[1]], vertices[tri[2]], origin, cell, resolution,
                         region_lower, region_upper)
     count = int(0)
     if span[0] * span[1] > _SMALL_COLUMNS:
-        count = span[0]
+        count = wp.min(span[0], most_shared)
     rows[f] = count
 
 
@@ -583,19 +588,18 @@ def _insert_surface_cells(
 ):
     # Every finest cell a triangle overlaps. Thread f takes triangle f whole when its bounding box is at most
     # _SMALL_COLUMNS columns across (nearly every triangle of a fine mesh); the rows of the larger ones are
-    # shared out, a run of them per thread, row i belonging to the first triangle whose running row count
-    # passes i. One thread per triangle over its whole bounding box had a large triangle oblique to the axes
+    # shared out (up to their cap, the rest taken by their own thread), a run of them per thread, row i
+    # belonging to the first triangle whose running row count passes i. One thread per triangle over its whole bounding box had a large triangle oblique to the axes
     # test up to resolution^3 cells in turn (a floor of two triangles).
     i = wp.tid()
     if i < face_count:
-        if rows[i] == 0:  # none of its rows are shared out
-            tri = faces[i]
-            a = vertices[tri[0]]
-            b = vertices[tri[1]]
-            c = vertices[tri[2]]
-            span = _rows_across(a, b, c, origin, cell, resolution, region_lower, region_upper)
-            for row in range(span[0]):
-                _insert_row(a, b, c, row, origin, cell, resolution, shift, region_lower, region_upper, table)
+        tri = faces[i]
+        a = vertices[tri[0]]
+        b = vertices[tri[1]]
+        c = vertices[tri[2]]
+        span = _rows_across(a, b, c, origin, cell, resolution, region_lower, region_upper)
+        for row in range(rows[i], span[0]):  # the rows not shared out: all of a small triangle's
+            _insert_row(a, b, c, row, origin, cell, resolution, shift, region_lower, region_upper, table)
     total = row_ends[face_count - 1]
     # each thread takes a run of rows in turn, so the rows of one triangle go in order (the CPU runs the
     # threads one after the other: rows taken by stride scattered its inserts over the set)
