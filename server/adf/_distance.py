@@ -1046,6 +1046,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 nearest = float(3.0e38)
                 has_inside = False
                 has_outside = False
+                clamped = False
                 for corner in range(8):
                     cx = float((corner >> 2) & 1)
                     cy = float((corner >> 1) & 1)
@@ -1057,6 +1058,8 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                     v = corner_value[slot]
                     if v != first:
                         flat = False
+                    if band > 0.0 and wp.abs(v) >= band:
+                        clamped = True
                     if wp.static(winding):
                         if v < 0.0:
                             has_inside = True
@@ -1117,7 +1120,12 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 # still cross the leaf between them (a band narrower than a cell: an unsigned field read
                 # points on its sheet as beyond the band): such a point is answered exactly
                 clamped_finest = flat and scale == 1
-                if not (has_inside and has_outside and clear) and not weak and not clamped_finest:
+                # a leaf with corners clamped at the band and others not reads too near inside it: a clamped
+                # corner's +-band stands for a larger distance, so points beyond the band read inside it by up to
+                # two cells (outside check, 2026-11-23). Such a point reading inside the band is answered exactly,
+                # so band or not, ADF answers are the same after clamping, or exact
+                short_of_band = clamped and not flat and not beyond
+                if not (has_inside and has_outside and clear) and not weak and not clamped_finest and not short_of_band:
                     if outputs & _OUT_DISTANCE:
                         out_distance[i] = value
                     if outputs & _OUT_NORMAL:

@@ -252,7 +252,8 @@ class DistanceField:
         sign: "pseudonormal" (angle-weighted, needs a closed mesh), "winding" (generalised winding number,
             any mesh), "none" (unsigned, e.g. cloth), or "auto" (pseudonormal for a closed mesh that encloses
             volume, else winding). Negative inside.
-        band: if set, distances beyond it are clamped to +-band and the searches stop at it.
+        band: if set, distances beyond it are clamped to +-band and the searches stop at it. An ADF query in a
+            leaf with corners clamped and not, reading inside the band, is answered exactly.
         coherence: start each frame's corner searches from last frame's nearest faces.
         refine: "surface" refines every finest cell the surface crosses; "centroid" only the cells holding a
             triangle's centroid (the paper's rule, with halo=0).
