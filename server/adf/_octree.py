@@ -53,6 +53,9 @@ _ROW_THREADS = 1 << 15
 # the triangle count, and its own thread takes the rest (only a mesh of millions of triangles each more than
 # _SMALL_COLUMNS columns across comes near; its sums would otherwise wrap and its rows go unrefined).
 _ROW_SUM_LIMIT = (1 << 31) - 1
+# The first try of a measured pass over the surface cells is held to the larger of these (above).
+_FIRST_TRY_CELLS = 1 << 20
+_FIRST_TRY_PER_FACE = 64
 _EVERYWHERE = 3.0e38  # the region box of an object without a region of interest
 
 
@@ -190,8 +193,12 @@ class Octree:
             kernel, expected = _insert_surface_cells, sheet * (2 * halo + 1)
         else:
             kernel, expected = _insert_centroid_cells, min(sheet, face_count) * (2 * halo + 1)
-        # the first try's table is kept for later frames: an estimate past the grid's cells would only waste it
-        expected = min(expected, resolution**3)
+        # the first try's table is kept for later frames: an estimate past the grid's cells would only waste it.
+        # The area counts twice a surface lying on another (100 copies of a square took 945 MB of scratch at
+        # depth 8 for one square's 24 MB; fifteenth outside check), so the first try is held to
+        # _FIRST_TRY_CELLS or _FIRST_TRY_PER_FACE a face, whichever is more, and a measured pass grows from it
+        held = max(_FIRST_TRY_CELLS, _FIRST_TRY_PER_FACE * face_count * (2 * halo + 1))
+        expected = min(expected, resolution**3, held)
 
         lower, upper = self.region_cells
         if self.refine == "surface":
