@@ -257,19 +257,6 @@ def beats(d_sq: float, leaf: int, best_sq: float, best_leaf: int) -> bool:
 
 
 @wp.func
-def _may_beat(bvh: BvhView, box_sq: float, slot: int, best_sq: float, best_leaf: int) -> bool:
-    """Whether the child in `slot`, whose box lies box_sq from p, may hold a leaf that beats the best (see
-    `beats`): a box nearer than it, or exactly as near with a leaf of lower index under it. Its leaves are a
-    run from slot_first, so a tied box whose first leaf comes after the best is passed over: faces that tie
-    in float32 (copies stacked on each other, every face of a mesh seen from 1e8 sizes away) were all
-    visited, one full pass over the faces per search (fifteenth outside check)."""
-    may = box_sq < best_sq
-    if box_sq == best_sq:
-        may = bvh.slot_first[slot] < best_leaf
-    return may
-
-
-@wp.func
 def _nearest_in_range(bvh: BvhView, p: wp.vec3, first: int, count: int, best_leaf: int, best_sq: float):
     for leaf in range(first, first + count):
         a, b, c = leaf_triangle(bvh, leaf)
@@ -309,7 +296,7 @@ def nearest_in_subtree(bvh: BvhView, p: wp.vec3, root: int, best_leaf: int, best
     visits = int(0)
     while count > 0:
         count -= 1
-        if not _may_beat(bvh, bounds[count], 2 * nodes[count], best_sq, best_leaf):
+        if bounds[count] > best_sq:
             continue
         if visits == budget:
             return best_leaf, best_sq, False
@@ -333,15 +320,15 @@ def nearest_in_subtree(bvh: BvhView, p: wp.vec3, root: int, best_leaf: int, best
             near_small = lower_1[3] <= float(LEAF_SIZE)
             far_small = lower_0[3] <= float(LEAF_SIZE)
         # small subtrees first, the nearer one first, so the bound tightens before the far test
-        if near_small and _may_beat(bvh, d_near, near, best_sq, best_leaf):
+        if near_small and d_near <= best_sq:
             best_leaf, best_sq = _nearest_in_range(bvh, p, bvh.slot_first[near], bvh.slot_count[near], best_leaf, best_sq)
-        if far_small and _may_beat(bvh, d_far, far, best_sq, best_leaf):
+        if far_small and d_far <= best_sq:
             best_leaf, best_sq = _nearest_in_range(bvh, p, bvh.slot_first[far], bvh.slot_count[far], best_leaf, best_sq)
-        if not far_small and _may_beat(bvh, d_far, far, best_sq, best_leaf):
+        if not far_small and d_far <= best_sq:
             nodes[count] = bvh.slot_child[far]
             bounds[count] = d_far
             count += 1
-        if not near_small and _may_beat(bvh, d_near, near, best_sq, best_leaf):
+        if not near_small and d_near <= best_sq:
             nodes[count] = bvh.slot_child[near]
             bounds[count] = d_near
             count += 1
@@ -352,8 +339,7 @@ def nearest_in_subtree(bvh: BvhView, p: wp.vec3, root: int, best_leaf: int, best
 def nearest_in_slot(bvh: BvhView, p: wp.vec3, slot: int, best_leaf: int, best_sq: float):
     """Nearest leaf under the child held in `slot` (see BvhView) that beats (best_sq, best_leaf)."""
     lower = load_vec4(bvh.slot_lower, slot)
-    if not _may_beat(bvh, box_distance_sq(p, _xyz(lower), _xyz(load_vec4(bvh.slot_upper, slot))), slot, best_sq,
-                     best_leaf):
+    if box_distance_sq(p, _xyz(lower), _xyz(load_vec4(bvh.slot_upper, slot))) > best_sq:
         return best_leaf, best_sq
     if lower[3] <= float(LEAF_SIZE):
         return _nearest_in_range(bvh, p, bvh.slot_first[slot], bvh.slot_count[slot], best_leaf, best_sq)
