@@ -1058,14 +1058,15 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                     v = corner_value[slot]
                     if v != first:
                         flat = False
-                    if band > 0.0 and wp.abs(v) >= band:
+                    at_band = band > 0.0 and wp.abs(v) >= band
+                    if at_band:
                         clamped = True
                     if wp.static(winding):
                         if v < 0.0:
                             has_inside = True
                         else:
                             has_outside = True
-                        if not (band > 0.0 and wp.abs(v) >= band):  # a clamped value bounds nothing
+                        if not at_band:  # a clamped value bounds nothing
                             farthest = wp.max(farthest, wp.abs(v))
                     nearest = wp.min(nearest, wp.abs(v))
                     weight = wx * wy * wz

@@ -596,8 +596,9 @@ def _insert_surface_cells(
     # Every finest cell a triangle overlaps. Thread f takes triangle f whole when its bounding box is at most
     # _SMALL_COLUMNS columns across (nearly every triangle of a fine mesh); the rows of the larger ones are
     # shared out (up to their cap, the rest taken by their own thread), a run of them per thread, row i
-    # belonging to the first triangle whose running row count passes i. One thread per triangle over its whole bounding box had a large triangle oblique to the axes
-    # test up to resolution^3 cells in turn (a floor of two triangles).
+    # belonging to the first triangle whose running row count passes i. One thread per triangle over its
+    # whole bounding box had a large triangle oblique to the axes test up to resolution^3 cells in turn (a
+    # floor of two triangles).
     i = wp.tid()
     if i < face_count:
         tri = faces[i]
