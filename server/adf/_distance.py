@@ -19,6 +19,7 @@ from badf.server.adf._bvh import (
     leaf_distance_sq,
     leaf_triangle,
     nearest_in_slot,
+    nearest_leaf_past_ties,
     nearest_leaf_within,
     spatial_seed,
     winding_number_careful,
@@ -404,13 +405,22 @@ def _seed_bound(bvh: BvhView, p: wp.vec3, seed: int, band: float):
     return best, best_sq
 
 
-@wp.func
-def _nearest_with_band(bvh: BvhView, p: wp.vec3, seed: int, band: float, budget: int):
-    """Nearest leaf from a seed leaf in at most `budget` node visits: (leaf, squared distance, finished);
-    leaf -1 when nothing lies within `band` (> 0). An unfinished search's answer is an upper bound."""
-    best, best_sq = _seed_bound(bvh, p, seed, band)
-    best, best_sq, finished = nearest_leaf_within(bvh, p, best, best_sq, budget)
-    return best, best_sq, finished
+def _banded_search(nearest_leaf):
+    """`nearest_leaf` (one of the BVH's two searches) started from a seed leaf and held to a band."""
+
+    def nearest_with_band(bvh: BvhView, p: wp.vec3, seed: int, band: float, budget: int):
+        """Nearest leaf from a seed leaf in at most `budget` node visits: (leaf, squared distance, finished);
+        leaf -1 when nothing lies within `band` (> 0). An unfinished search's answer is an upper bound."""
+        best, best_sq = _seed_bound(bvh, p, seed, band)
+        best, best_sq, finished = nearest_leaf(bvh, p, best, best_sq, budget)
+        return best, best_sq, finished
+
+    return wp.func(nearest_with_band, module="unique")
+
+
+# the corner searches' and the queries' (which pass over tied boxes: see `_nearest_searches`)
+_nearest_with_band = _banded_search(nearest_leaf_within)
+_nearest_past_ties = _banded_search(nearest_leaf_past_ties)
 
 
 @wp.func
@@ -616,7 +626,7 @@ def _nearest_point_from_corners(tree: OctreeView, corner_leaf: wp.array(dtype=wp
     """(p's nearest leaf, p's closest point on it, its feature), searched from the nearest of the faces recorded
     at the corners of p's octree leaf (node, octant); p's own face need not be one of them."""
     seed = _nearest_corner_face(tree, corner_leaf, node, octant, bvh, p)
-    leaf, _best_sq, _done = _nearest_with_band(bvh, p, seed, 0.0, UNLIMITED_VISITS)
+    leaf, _best_sq, _done = _nearest_past_ties(bvh, p, seed, 0.0, UNLIMITED_VISITS)
     a, b, c = leaf_triangle(bvh, leaf)
     foot, feature = closest_point_on_triangle(p, a, b, c)
     return leaf, foot, feature
@@ -1144,7 +1154,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         else:
             seed = spatial_seed(bvh, p, tree.origin, inv_side)
 
-        leaf, best_sq, finished = _nearest_with_band(bvh, p, seed, band, UNLIMITED_VISITS)
+        leaf, best_sq, finished = _nearest_past_ties(bvh, p, seed, band, UNLIMITED_VISITS)
         if leaf < 0:  # nothing within the band: +-band, by the winding number (no face to take a pseudonormal of)
             inside = False
             if wp.static(winding):
