@@ -547,6 +547,9 @@ def test_slice_grid_and_crossing_cells(device):
     position = float(centre[1] + 0.05 * side)
     cut = field.slice("y", position, resolution=(48, 32))
     assert cut.distance.shape == (32, 48) and cut.axis == "y"
+    # a slice is counted as one, not as a query of its grid's points (sixteenth outside check)
+    stats = field.stats()
+    assert (stats["slices"], stats["queries"], stats["query_points"]) == (1, 0, 0) and stats["last_slice_ms"] > 0
     # the grid is the ADF at the grid points
     from badf.server.adf._slice import plane_grid
 

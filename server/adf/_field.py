@@ -236,6 +236,8 @@ class _Counters:
     queries: int = 0
     query_points: int = 0
     last_query_ms: float = 0.0
+    slices: int = 0
+    last_slice_ms: float = 0.0
     last_update_wall_ms: float = 0.0
     replans: int = 0  # planned frames that outgrew their sizes and were measured again
     measured_frames: int = 0  # frames that read their sizes back on the way: the build and every replan
@@ -434,6 +436,14 @@ class DistanceField:
         names = check_outputs(outputs)
         p = as_points(points)
         start_time = time.perf_counter()
+        result = self._answer(p, mode, names)
+        self._counters.queries += 1
+        self._counters.query_points += len(p)
+        self._counters.last_query_ms = (time.perf_counter() - start_time) * 1e3
+        return result
+
+    def _answer(self, p: np.ndarray, mode: QueryMode, names: tuple[QueryOutput, ...]) -> QueryResult:
+        """The outputs `names` at checked points p: a query's work, which a slice shares (uncounted)."""
         count = len(p)
         result = QueryResult(frame=self._frame)
         shapes = {"distance": ((count,), np.float32), "closest_point": ((count, 3), np.float32),
@@ -481,9 +491,6 @@ class DistanceField:
                 closest[arrays["face"] < 0] = 0.0
         for name in names:
             setattr(result, name, arrays[name])
-        self._counters.queries += 1
-        self._counters.query_points += count
-        self._counters.last_query_ms = (time.perf_counter() - start_time) * 1e3
         return result
 
     @_on_device
@@ -501,6 +508,7 @@ class DistanceField:
         max_level: leave out cells deeper than this level (None: all, down to the finest).
         """
         self._check_field()
+        start_time = time.perf_counter()
         axis_index = check_axis(axis)
         position = check_finite_number(position, "position")
         if abs(position) > MAX_COORDINATE:
@@ -512,7 +520,7 @@ class DistanceField:
         u_range = (float(centre[u_axis] - half), float(centre[u_axis] + half))
         v_range = (float(centre[v_axis] - half), float(centre[v_axis] + half))
         grid = plane_grid(axis_index, position, u_range, v_range, rows, cols)
-        distance = self.query(grid, mode="adf").distance.reshape(rows, cols)
+        distance = self._answer(as_points(grid), "adf", ("distance",)).distance.reshape(rows, cols)
         o = self._octree
         with wp.ScopedDevice(self._device):
             lower, upper, level, leaf, empty = self._slice_cells.cells(
@@ -522,6 +530,9 @@ class DistanceField:
         for corners in (lower, upper):
             _to_world_units(corners, self._domain.scale)
             corners += centre.astype(np.float32)
+        # counted apart from queries: a slice counted as one, with its grid's points (sixteenth outside check)
+        self._counters.slices += 1
+        self._counters.last_slice_ms = (time.perf_counter() - start_time) * 1e3
         return Slice(axis=AXES[axis_index], position=position, distance=distance, u_range=u_range, v_range=v_range,
                      cell_lower=lower, cell_upper=upper, cell_level=level, cell_is_leaf=leaf, cell_is_empty=empty,
                      frame=self._frame)
@@ -612,6 +623,8 @@ class DistanceField:
             "graph_captures": c.graph_captures,
             "queries": c.queries,
             "query_points": c.query_points,
+            "slices": c.slices,
+            "last_slice_ms": round(c.last_slice_ms, 4),
             "device_bytes": self._buffers.nbytes(),
             "memory_bytes": self._buffers.nbytes_by_role(),
         }
