@@ -49,7 +49,7 @@ QUERY_OUTPUTS: tuple[str, ...] = get_args(QueryOutput)
 AXES: tuple[str, ...] = get_args(Axis)
 # Sanity bounds checked on decode; the engine enforces its own, narrower ranges (RejectedInputError).
 MAX_DEPTH = 10  # the engine's deepest octree (badf.server.adf), so a client is told the range that works
-MAX_HALO = 8
+MAX_HALO = 2  # the engine's widest halo, likewise (a halo of 3 to 8 passed the client and the worker refused it)
 MAX_ERROR_MESSAGE_LENGTH = 4000
 # Bits of SliceReply.cell_flags.
 CELL_LEAF = 1
@@ -264,6 +264,8 @@ def _check_int(owner: str, name: str, value: object, *, minimum: int = 0, maximu
         raise InvalidOptionError(f"{owner}.{name} must be an integer, got {_short(value)}")
     if value < minimum or value > maximum:
         given = str(value) if abs(value) < 10**30 else f"an integer of {int(value).bit_length()} bits"
+        if value < minimum and maximum == MAX_WIRE_INT:  # its bound is the wire's, not the field's (the worker's limits are)
+            raise InvalidOptionError(f"{owner}.{name} must be at least {minimum}, got {given}")
         raise InvalidOptionError(f"{owner}.{name} must be between {minimum} and {maximum}, got {given}")
     return int(value)
 

@@ -459,6 +459,21 @@ def test_integers_on_the_wire_are_bounded_and_told_by_name() -> None:
             ObjectOptions(depth=depth)
 
 
+def test_the_client_tells_the_ranges_the_engine_takes() -> None:
+    """A halo of 3 to 8 passed the client and came back from the worker as another error, and -1 was told a
+    range of 0 to 8; a slice's resolution of 0 was told a range up to 2^63 - 1, the wire's bound, where the
+    worker's limit is 2048 (sixteenth outside check)."""
+    from badf.protocol import _messages
+    from badf.server.adf import _tolerances
+
+    assert (_messages.MAX_HALO, _messages.MAX_DEPTH) == (_tolerances.MAX_HALO, _tolerances.MAX_DEPTH)
+    for halo in (-1, 3):
+        with pytest.raises(InvalidOptionError, match=f"ObjectOptions.halo must be between 0 and 2, got {halo}"):
+            ObjectOptions(halo=halo)
+    with pytest.raises(InvalidOptionError, match="SliceRequest.resolution must be at least 1, got 0$"):
+        SliceRequest("a", "z", 0.0, resolution=0)
+
+
 def test_a_region_of_interest_is_a_box_of_finite_numbers() -> None:
     assert ObjectOptions(region=[[0, 0, 0], [1, 2, 3]]).region == ((0.0, 0.0, 0.0), (1.0, 2.0, 3.0))
     assert ObjectOptions(region=np.zeros((2, 3), np.float32)).to_json()["region"] == [0.0] * 6
