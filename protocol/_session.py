@@ -75,9 +75,9 @@ def _endpoints_json(endpoints: Sequence[str], role: str) -> str:
                 f"{role} endpoint {endpoint!r}: Zenoh's UDP links may drop messages, and badf's requests and "
                 "frames must not be lost; use tcp/, tls/ or quic/"
             )
-        port = _port_of(endpoint)
-        if port is not None and not 0 <= port <= 65535:
-            raise InvalidOptionError(f"{role} endpoint {endpoint!r} names port {port}: a port is 0 to 65535")
+        problem = _address_problem(endpoint)
+        if problem is not None:
+            raise InvalidOptionError(f"{role} endpoint {endpoint!r} {problem}")
     return json.dumps(list(endpoints))
 
 
@@ -85,14 +85,33 @@ _IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
 _LOSSY_PROTOCOLS = ("udp",)  # best effort: a request or a registration sent on it can vanish without a word
 
 
-def _port_of(endpoint: str) -> int | None:
-    """The port of an IP endpoint (PROTOCOL/HOST:PORT, metadata after '?' or '#' aside), if it names one."""
+def _address_problem(endpoint: str) -> str | None:
+    """What is wrong with an IP endpoint's HOST:PORT (metadata after '?' or '#' aside), or None. Zenoh's parser
+    takes any text there, and a port of -1 or "abc", or no port, failed only when the session opened, as
+    "is a port taken?" and exit status 1 (sixteenth outside check)."""
     protocol, _, address = endpoint.partition("/")
-    address = re.split(r"[?#]", address, maxsplit=1)[0]
-    host, colon, port = address.rpartition(":")
-    if protocol.lower() not in _IP_PROTOCOLS or not colon or not port.isdigit():
+    if protocol.lower() not in _IP_PROTOCOLS:
         return None
-    return int(port)
+    address = re.split(r"[?#]", address, maxsplit=1)[0]
+    if address.startswith("["):  # [IPv6]:PORT
+        host, bracket, rest = address[1:].partition("]")
+        colon, port = rest[:1], rest[1:]
+        if not bracket or rest[:1] not in ("", ":"):
+            return "is not [IPv6]:PORT, for instance tcp/[::1]:7447"
+    else:
+        host, colon, port = address.rpartition(":")
+    if not colon or not port:
+        return f"names no port: expected {protocol}/HOST:PORT, for instance {DEFAULT_ENDPOINT}"
+    if not host:
+        return f"names no host: expected {protocol}/HOST:PORT, for instance {DEFAULT_ENDPOINT}"
+    if not port.isascii() or not port.isdigit():
+        return f"names port {port!r}: a port is a number, 0 to 65535"
+    if not 0 <= int(port) <= 65535:
+        return f"names port {int(port)}: a port is 0 to 65535"
+    octets = host.split(".")
+    if len(octets) == 4 and all(o.isascii() and o.isdigit() for o in octets) and any(int(o) > 255 for o in octets):
+        return f"names host {host!r}: each part of an IPv4 address is 0 to 255"
+    return None
 
 
 def zenoh_message(error: Exception) -> str:

@@ -17,6 +17,14 @@ CASES = [
     (["serve", "--listen", "<free>", "--connect", "garbage"], "connect endpoint 'garbage' is not a Zenoh endpoint"),
     (["serve", "--router-only", "--listen", "nowhere"], "listen endpoint 'nowhere' is not a Zenoh endpoint"),
     (["serve", "--listen", "tcp/127.0.0.1:99999"], "names port 99999: a port is 0 to 65535"),
+    # ports and hosts that Zenoh's parser took and only the session's opening refused, as "is a port taken?"
+    # with exit status 1 (sixteenth outside check)
+    (["serve", "--listen", "tcp/127.0.0.1:-1"], "names port '-1': a port is a number, 0 to 65535"),
+    (["serve", "--listen", "tcp/127.0.0.1:abc"], "names port 'abc': a port is a number"),
+    (["serve", "--listen", "tcp/127.0.0.1"], "'tcp/127.0.0.1' names no port: expected tcp/HOST:PORT"),
+    (["serve", "--listen", "tcp/127.0.0.1:"], "names no port"),
+    (["serve", "--listen", "tcp/999.0.0.1:17479"], "names host '999.0.0.1': each part of an IPv4 address is 0 to 255"),
+    (["demo", "--no-viewer", "--frames", "1", "--listen", "tcp/127.0.0.1:-1"], "--listen: listen endpoint"),
     (["serve", "--listen", "<free>", "--connect", "tcp/127.0.0.1:70000?iface=lo"], "names port 70000"),
     (["serve", "--listen", "<free>", "--config", "/nonexistent/badf.json5"], "cannot use the Zenoh config file"),
     (["serve", "--mode", "client"], "give the router to connect to (--connect tcp/HOST:7447)"),
