@@ -22,7 +22,7 @@ import zenoh
 
 from badf.protocol import InvalidOptionError, WorkerUnavailableError, zenoh_message
 from badf.server._router import RouterSettings, configured_endpoints, log_worker_changes
-from badf.server._signals import on_stop_signals
+from badf.server._signals import ignore_terminal_signals, on_stop_signals
 from badf.server._worker import WorkerSettings, engine_field_builder, serve, warm_up_engine
 
 log = logging.getLogger("badf.server")
@@ -185,7 +185,8 @@ def worker_process(settings: WorkerSettings, *, start_timeout_s: float = 300.0) 
 
     Yields once the worker is ready (Warp imported, kernels loaded, keys declared), or raises
     WorkerUnavailableError if it exits first or is not ready within `start_timeout_s`. Afterwards the
-    child gets SIGTERM, and SIGKILL if it has not exited 30 s later.
+    child gets SIGTERM, and SIGKILL if it has not exited 30 s later. The child ignores SIGINT and SIGHUP,
+    which a terminal sends the whole group: the caller takes them and the block ends the child.
     """
     with _child(_worker_main, settings, f"badf-worker-{settings.worker_id}", start_timeout_s) as process:
         yield process
@@ -236,6 +237,7 @@ def _spawn(
 
 
 def _worker_main(settings: WorkerSettings, ready: _Settable) -> None:
+    ignore_terminal_signals()  # the parent ends it
     exit_now(run_worker(settings, ready))  # the exit status tells the parent why a worker did not start
 
 
@@ -252,10 +254,12 @@ def exit_now(status: int) -> None:
 
 
 def _router_main(settings: RouterSettings, ready: _Settable) -> None:
+    ignore_terminal_signals()  # the parent ends it
     exit_now(run_router(settings, ready))
 
 
 def _workers_main(settings: tuple[RouterSettings, list[WorkerSettings]], ready: _Settable) -> None:
+    ignore_terminal_signals()  # the parent ends it
     router, workers = settings
     exit_now(run_workers(router, workers, ready))
 

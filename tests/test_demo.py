@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 from conftest import free_endpoint, process_group_members, wait_until
@@ -50,19 +51,25 @@ def test_demo_runs_frames_prints_stats_and_cleans_up(scene):
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGHUP], ids=["ctrl-c", "hangup"])
-def test_ctrl_c_ends_the_demo_cleanly(signum):
+def test_ctrl_c_ends_the_demo_cleanly(signum, tmp_path):
     """SIGHUP (a closed terminal) ended the demo at once, leaving its worker and viewer running (outside
-    check 2026-11-22); it now ends it as Ctrl-C does."""
-    process = _start("morph")
+    check 2026-11-22); it now ends it as Ctrl-C does. Both go to the whole process group, as a terminal sends
+    them: the worker, which stopped by itself then, failed the demo's request in flight, and the demo exited 1
+    with "its worker is gone" instead of its summary (sixteenth outside check). A one-triangle sequence keeps
+    requests in flight nearly all the time."""
+    sequence = tmp_path / "triangle.npz"
+    frames = np.eye(3)[None] * np.linspace(1.0, 2.0, 4)[:, None, None]
+    np.savez(sequence, vertices=frames, faces=np.array([[0, 1, 2]]))
+    process = _start("morph", "--sequence", str(sequence))
     lines = []
     deadline = time.monotonic() + DEMO_TIMEOUT_S
     try:
         for line in process.stdout:  # until the demo has streamed a few frames
             lines.append(line)
-            if line.startswith("frame     3"):
+            if line.startswith("frame    20"):
                 break
             assert time.monotonic() < deadline, "no frames before the deadline"
-        os.kill(process.pid, signum)
+        os.killpg(process.pid, signum)
         rest = _finish(process, 120)
     finally:
         if process.poll() is None:

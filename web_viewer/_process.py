@@ -70,11 +70,15 @@ def viewer_process(
 
 
 def _serve(settings: ViewerSettings, urls: Any, started: Any) -> None:
-    """The child: serve the viewer until SIGTERM or SIGINT; exit status 1 if it cannot start."""
+    """The child: serve the viewer until SIGTERM from its parent; exit status 1 if it cannot start.
+
+    It ignores Ctrl-C and SIGHUP, which a terminal sends its whole foreground group: the parent (`badf demo`)
+    takes them and ends its children in order, as `badf.server._signals.ignore_terminal_signals` says."""
     started.set()
     stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda _number, _frame: stop.set())
+    for signum in [signal.SIGINT] + ([signal.SIGHUP] if hasattr(signal, "SIGHUP") else []):
+        signal.signal(signum, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, lambda _number, _frame: stop.set())
     if not logging.getLogger().handlers:
         logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(asctime)s badf %(levelname)s %(message)s")
         logging.getLogger("websockets").setLevel(logging.WARNING)  # viser's web server: no line per start and stop
