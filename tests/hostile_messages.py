@@ -50,6 +50,7 @@ from badf.protocol import (
     WorkerInfo,
     WrongKindError,
 )
+from badf.protocol._messages import MAX_HALO
 from badf.protocol._wire import NUMPY_DTYPES, WireDtype
 
 HEADER = struct.Struct("<4sHBBIQ")  # magic, version, kind, array count, metadata bytes, total bytes
@@ -106,7 +107,7 @@ def object_options(draw) -> ObjectOptions:
         band=draw(st.none() | st.floats(1e-6, 1e6)),
         coherence=draw(st.booleans()),
         refine=draw(st.sampled_from(REFINE_METHODS)),
-        halo=draw(st.integers(0, 8)),
+        halo=draw(st.integers(0, MAX_HALO)),
         region=draw(st.none() | hnp.arrays(np.float64, (2, 3), elements=finite).map(lambda box: np.sort(box, axis=0))),
     )
 
