@@ -588,6 +588,53 @@ def test_worker_shuts_down_cleanly_on_sigterm_and_leaves_ctrl_c_to_its_parent(en
             remote.info(timeout=5)
 
 
+def _running(pid: int) -> bool:
+    """Whether process `pid` exists and has not exited (a zombie has)."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def test_a_managed_child_ends_when_its_parent_is_killed(tmp_path, endpoint: str) -> None:
+    """Managed children ignore the terminal's Ctrl-C, so a parent killed with SIGKILL (a hung demo) left its
+    worker, router or viewer serving on its port (review, sixteenth stop). They now end once their parent has."""
+    script = tmp_path / "parent.py"
+    script.write_text(
+        "import sys\n"
+        "from badf.server import RouterSettings, router_process\n"
+        "if __name__ == '__main__':\n"
+        f"    with router_process(RouterSettings(listen=({endpoint!r},))) as child:\n"
+        "        print(child.pid, flush=True)\n"
+        "        sys.stdin.read()\n"
+    )
+    parent = subprocess.Popen([sys.executable, str(script)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        child = int(parent.stdout.readline())
+        assert _running(child)
+        parent.kill()  # the process this test started
+        parent.wait(30)
+        wait_until(lambda: not _running(child), timeout=60, what=f"the router child {child} to end with its parent")
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait()
+
+
+def test_stop_signals_take_an_ignored_sigint_except_in_a_managed_child() -> None:
+    """A shell script's `badf serve &` starts with SIGINT ignored, and `kill -INT` must still end it (review,
+    sixteenth stop); a managed child keeps it ignored."""
+    code = ("import signal\n"
+            "from badf.server import _signals\n"
+            "print(signal.SIGINT in _signals.stop_signals())\n"
+            "_signals._managed_child = True\n"
+            "print(signal.SIGINT in _signals.stop_signals())\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    assert done.stdout.split() == ["True", "False"], done.stdout + done.stderr
+
+
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
 def test_badf_serve_shuts_down_cleanly_on_signals(endpoint: str, signum: int) -> None:
     vertices, faces = meshes.load("spot")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import multiprocessing.connection
 import os
 import queue
 import signal
@@ -73,12 +74,17 @@ def _serve(settings: ViewerSettings, urls: Any, started: Any) -> None:
     """The child: serve the viewer until SIGTERM from its parent; exit status 1 if it cannot start.
 
     It ignores Ctrl-C and SIGHUP, which a terminal sends its whole foreground group: the parent (`badf demo`)
-    takes them and ends its children in order, as `badf.server._signals.ignore_terminal_signals` says."""
+    takes them and ends its children in order, as `badf.server._signals.ignore_terminal_signals` says. Should
+    the parent die without ending it (SIGKILL), it stops by itself."""
     started.set()
     stop = threading.Event()
     for signum in [signal.SIGINT] + ([signal.SIGHUP] if hasattr(signal, "SIGHUP") else []):
         signal.signal(signum, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda _number, _frame: stop.set())
+    parent = multiprocessing.parent_process()
+    if parent is not None:
+        threading.Thread(target=lambda: (multiprocessing.connection.wait([parent.sentinel]), stop.set()),
+                         name="badf-parent-watch", daemon=True).start()
     if not logging.getLogger().handlers:
         logging.basicConfig(stream=sys.stderr, level=logging.INFO, format="%(asctime)s badf %(levelname)s %(message)s")
         logging.getLogger("websockets").setLevel(logging.WARNING)  # viser's web server: no line per start and stop
