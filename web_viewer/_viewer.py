@@ -695,7 +695,8 @@ class Viewer:
             f"**{info.name}** on worker `{info.worker}` ({info.field_info.get('device', '?')})",
             f"frame **{info.frame}** (slice of {_text(shown.slice_frame)}, mesh of {shown.mesh_frame}); "
             f"{info.frames_applied} applied, {info.frames_dropped} dropped",
-            f"update {_ms(stats.get('update_wall_ms'))}, last query {_ms(stats.get('last_query_ms'))} (worker)",
+            f"update {_ms(stats.get('update_wall_ms'))}, last slice {_ms(stats.get('last_slice_ms'))}, "
+            f"last query {_ms(stats.get('last_query_ms'))} (worker)",
             slice_line,
             f"{info.face_count:,} triangles, {counts.get('octree_nodes', 0):,} octree nodes, "
             f"{counts.get('unique_corners', 0):,} corners",
