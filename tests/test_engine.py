@@ -11,6 +11,7 @@ import meshes
 import oracle
 import tolerances as tol
 from badf.server.adf import DistanceField, InvalidInputError
+from badf.server.adf._geometry import quantize
 from badf.server.adf._bvh import BvhView, leaf_distance_sq, nearest_leaf_past_ties, nearest_leaf_within, winding_number
 
 ALL_OUTPUTS = ("distance", "closest_point", "normal", "face")
@@ -977,6 +978,23 @@ def test_a_part_far_from_the_rest_leaves_the_bvh_pruning_near_the_rest(device):
     wp.launch(_budgeted_corner_searches, dim=len(points), inputs=[field._bvh.view(), local, seeds, 128],
               outputs=[finished], device=device)
     assert finished.numpy().all(), f"{np.count_nonzero(finished.numpy() == 0)} of 200 searches took over 128 visits"
+
+
+@wp.kernel
+def _quantized(points: wp.array(dtype=wp.vec3), resolution: int, cells: wp.array(dtype=wp.vec3i)):
+    i = wp.tid()
+    cells[i] = quantize(points[i], wp.vec3(0.0), float(resolution), resolution)
+
+
+def test_points_past_int32_cells_quantize_into_the_edge_cells(device):
+    """A coordinate past 2^31 cells converted to int32's lowest on the CPU before it was clamped, so a point
+    far along +x got cell 0 (a BVH seed at the wrong end of the mesh; review, sixteenth stop)."""
+    points = np.array([[3e3, -3e3, 0.5], [1e30, 0.25, -1e30], [0.5, 0.999999, 2.0]], np.float32)
+    cells = wp.zeros(len(points), dtype=wp.vec3i, device=device)
+    wp.launch(_quantized, dim=len(points), inputs=[wp.array(points, dtype=wp.vec3, device=device), 1 << 20],
+              outputs=[cells], device=device)
+    top = (1 << 20) - 1
+    assert cells.numpy().tolist() == [[top, 0, 1 << 19], [top, 1 << 18, 0], [1 << 19, int(0.999999 * 2**20), top]]
 
 
 def test_a_closed_mesh_given_inside_out_is_signed_like_the_right_way_round(device):

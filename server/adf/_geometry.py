@@ -180,11 +180,14 @@ def atomic_min_packed(arr: wp.array(dtype=wp.int64), i: int, packed: wp.int64):
 
 @wp.func
 def quantize(p: wp.vec3, origin: wp.vec3, inv_cell: float, resolution: int) -> wp.vec3i:
-    """Integer cell coordinates of p on a grid of `resolution` cells per axis, clamped into the grid."""
+    """Integer cell coordinates of p on a grid of `resolution` cells per axis, clamped into the grid. The
+    clamp comes before the conversion to int: a coordinate past 2^31 cells (a point 2,000 domain sides away
+    with 2^20 cells) converted to int32's lowest on the CPU and landed in cell 0 (review, sixteenth stop)."""
     g = (p - origin) * inv_cell
-    top = resolution - 1
+    top = float(resolution - 1)
     return wp.vec3i(
-        wp.clamp(int(wp.floor(g[0])), 0, top), wp.clamp(int(wp.floor(g[1])), 0, top), wp.clamp(int(wp.floor(g[2])), 0, top)
+        int(wp.floor(wp.clamp(g[0], 0.0, top))), int(wp.floor(wp.clamp(g[1], 0.0, top))),
+        int(wp.floor(wp.clamp(g[2], 0.0, top))),
     )
 
 
