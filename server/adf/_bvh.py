@@ -53,9 +53,10 @@ def code_layout(face_count: int) -> tuple[int, int]:
     A key is the Morton code of the triangle's centroid on a grid of 2^levels cells per axis, with the face
     index in the low `index bits` below it, so every key is unique and within 62 bits (the radix tree over
     it is then at most 62 levels deep, which the searches' stacks hold). The code takes every bit the index
-    leaves: 15 levels for the bunny's 69,451 triangles, 13 for millions. A fixed 10 put a mesh's dense part
-    in a handful of cells when a part 1,000 times smaller than the domain lay far from the rest; their
-    triangles were ordered by index there, and exact queries near them took 16 times as long (CPU).
+    leaves: 15 levels for the bunny's 69,451 triangles, 13 up to 2^23 triangles and 12 up to 2^26. A fixed 10
+    put a mesh's dense part in a handful of cells when a part 1,000 times smaller than the domain lay far from
+    the rest; their triangles were ordered by index there, and exact queries near them took 16 times as long
+    (CPU).
     """
     index_bits = max(1, (face_count - 1).bit_length())
     return min(21, (KEY_TOP_BIT - index_bits) // 3), index_bits
