@@ -264,7 +264,8 @@ def _check_int(owner: str, name: str, value: object, *, minimum: int = 0, maximu
         raise InvalidOptionError(f"{owner}.{name} must be an integer, got {_short(value)}")
     if value < minimum or value > maximum:
         given = str(value) if abs(value) < 10**30 else f"an integer of {int(value).bit_length()} bits"
-        if value < minimum and maximum == MAX_WIRE_INT:  # its bound is the wire's, not the field's (the worker's limits are)
+        # a field bounded only by the wire: its real limit is the worker's, so tell the minimum alone
+        if value < minimum and maximum == MAX_WIRE_INT:
             raise InvalidOptionError(f"{owner}.{name} must be at least {minimum}, got {given}")
         raise InvalidOptionError(f"{owner}.{name} must be between {minimum} and {maximum}, got {given}")
     return int(value)

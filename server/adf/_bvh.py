@@ -45,6 +45,11 @@ from badf.server.adf._geometry import (
 )
 from badf.server.adf._tolerances import BOX_SLACK, WINDING_FAR_FIELD
 
+_FAR_FIELD = wp.constant(WINDING_FAR_FIELD)
+_BOX_SLACK = wp.constant(BOX_SLACK)
+_INV_FOUR_PI = wp.constant(1.0 / (4.0 * math.pi))
+LEAF_SIZE = wp.constant(1)
+UNLIMITED_VISITS = wp.constant(2**31 - 1)
 
 
 def code_layout(face_count: int) -> tuple[int, int]:
@@ -60,12 +65,6 @@ def code_layout(face_count: int) -> tuple[int, int]:
     """
     index_bits = max(1, (face_count - 1).bit_length())
     return min(21, (KEY_TOP_BIT - index_bits) // 3), index_bits
-
-_FAR_FIELD = wp.constant(WINDING_FAR_FIELD)
-_BOX_SLACK = wp.constant(BOX_SLACK)
-_INV_FOUR_PI = wp.constant(1.0 / (4.0 * math.pi))
-LEAF_SIZE = wp.constant(1)
-UNLIMITED_VISITS = wp.constant(2**31 - 1)
 
 
 @wp.struct
@@ -289,7 +288,9 @@ def _nearest_searches(past_tied_boxes: bool):
     With `past_tied_boxes` a box exactly as far as the best so far is passed over when its first leaf comes
     after the best's, since none of its leaves can win the tie (`beats`). Seen from far enough (1e8 sizes
     away) every face ties in float32, and without it a search visits every face: 0.8 ms a point for 20K faces
-    on the CPU, 3 us with it (fifteenth outside check). The answers are the same either way. The corner
+    on the CPU, 3 us with it (fifteenth outside check). The answers are the same within about 30 domain sides;
+    beyond, a face's float32 distance can round 1 or 2 ulps below its box's, and the search may name another
+    face that near in squared distance (docs/engine.md, "The pipeline", step 6). The corner
     searches, which never meet such ties in bulk, take the search without it: the extra test made them 15%
     slower on the H100 (2026-11-23); the queries take the search with it.
     """
