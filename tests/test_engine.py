@@ -11,8 +11,17 @@ import meshes
 import oracle
 import tolerances as tol
 from badf.server.adf import DistanceField, InvalidInputError
+from badf.server.adf._distance import EXACT_ROUNDING
 from badf.server.adf._geometry import quantize
-from badf.server.adf._bvh import BvhView, leaf_distance_sq, nearest_leaf_past_ties, nearest_leaf_within, winding_number
+from badf.server.adf._bvh import (
+    UNLIMITED_VISITS,
+    BvhView,
+    leaf_distance_held_to_box_sq,
+    leaf_distance_sq,
+    nearest_leaf_past_ties,
+    nearest_leaf_within,
+    winding_number,
+)
 
 ALL_OUTPUTS = ("distance", "closest_point", "normal", "face")
 
@@ -946,6 +955,61 @@ def test_a_query_seen_from_far_away_where_every_face_ties_visits_few_nodes(devic
     truth = oracle.nearest(points, vertices, faces).distance
     assert np.allclose(distance.numpy() / field._domain.scale, truth, rtol=1e-6, atol=0)
     assert np.allclose(field.query(points, mode="exact").distance, truth, rtol=1e-6, atol=0)
+
+
+@wp.kernel(module="unique", module_options=EXACT_ROUNDING)  # rounded as the engine's searches are (no FMA on CUDA)
+def _query_searches_from_seeds(bvh: BvhView, points: wp.array(dtype=wp.vec3), seeds: wp.array2d(dtype=wp.int32),
+                               found: wp.array2d(dtype=wp.int32), least: wp.array(dtype=wp.int32)):
+    """Each point's search from each of its seeds, and the leaf of least value over all leaves (ties to the
+    lowest), valued as the search values them."""
+    i = wp.tid()
+    p = points[i]
+    for k in range(seeds.shape[1]):
+        seed = seeds[i, k]
+        leaf, _d_sq, _done = nearest_leaf_past_ties(bvh, p, seed, leaf_distance_held_to_box_sq(bvh, seed, p),
+                                                     UNLIMITED_VISITS)
+        found[i, k] = leaf
+    best = int(0)
+    best_sq = leaf_distance_held_to_box_sq(bvh, 0, p)
+    for leaf in range(1, bvh.internal_count + 1):
+        d_sq = leaf_distance_held_to_box_sq(bvh, leaf, p)
+        if d_sq < best_sq:
+            best = leaf
+            best_sq = d_sq
+    least[i] = best
+
+
+def test_a_query_far_off_a_flat_faced_mesh_names_the_least_face_from_any_start(device):
+    """Off a box meshed in axis-aligned squares, many faces lie within an ulp or two of each other from far away,
+    and beyond about 30 sizes a face's float32 distance could round below its box's: the queries' search, which
+    passes over a box tied with the best, then named another face than the least, by where it started (332
+    of 4,000 searches here; the review's case, sixteenth stop). It values a face at no less than its box now,
+    every start finds the least, and so does an exact query."""
+    box = trimesh.creation.box(extents=(1.0, 0.7, 0.4)).subdivide().subdivide().subdivide()
+    vertices, faces = np.asarray(box.vertices), np.asarray(box.faces)
+    field = DistanceField(vertices, faces, depth=2, sign="none", device=device)
+    rng = np.random.default_rng(5)
+    # near the axes, off the middle of a side, where its squares' distances differ by ulps
+    directions = np.eye(3)[rng.integers(0, 3, 1000)] * rng.choice([-1, 1], (1000, 1)) + rng.normal(0, 1e-3, (1000, 3))
+    points = directions / np.linalg.norm(directions, axis=1, keepdims=True) * np.geomspace(30, 3e3, 1000)[:, None]
+    leaves = len(faces)
+    seeds = np.stack([np.zeros(1000), np.full(1000, leaves - 1), rng.integers(0, leaves, 1000),
+                      rng.integers(0, leaves, 1000)], axis=1).astype(np.int32)
+    local = wp.array(field._domain.to_local(points), dtype=wp.vec3, device=device)
+    found = wp.zeros(seeds.shape, dtype=wp.int32, device=device)
+    least = wp.zeros(len(points), dtype=wp.int32, device=device)
+    wp.launch(_query_searches_from_seeds, dim=len(points),
+              inputs=[field._bvh.view(), local, wp.array(seeds, dtype=wp.int32, device=device)],
+              outputs=[found, least], device=device)
+    wrong = np.count_nonzero(found.numpy() != least.numpy()[:, None])
+    assert wrong == 0, f"{wrong} of {seeds.size} searches named another face than the least"
+    result = field.query(points, mode="exact", outputs=("distance", "face"))
+    assert np.array_equal(result.face, field._bvh.leaf_faces()[least.numpy()])
+    truth = oracle.nearest(points, vertices, faces).distance
+    assert np.allclose(result.distance, truth, rtol=1e-6, atol=0)
+    tri = vertices[faces[result.face]]
+    named = np.linalg.norm(oracle.closest_points_on_triangles(points, tri[:, 0], tri[:, 1], tri[:, 2]) - points, axis=1)
+    assert np.allclose(named, truth, rtol=1e-6, atol=0)  # a face as near as any, to float32's rounding
 
 
 @wp.kernel

@@ -272,28 +272,48 @@ def beats(d_sq: float, leaf: int, best_sq: float, best_leaf: int) -> bool:
 
 
 @wp.func
-def _nearest_in_range(bvh: BvhView, p: wp.vec3, first: int, count: int, best_leaf: int, best_sq: float):
-    for leaf in range(first, first + count):
-        a, b, c = leaf_triangle(bvh, leaf)
-        d_sq = triangle_distance_sq(p, a, b, c)
-        if beats(d_sq, leaf, best_sq, best_leaf):
-            best_sq = d_sq
-            best_leaf = leaf
-    return best_leaf, best_sq
+def leaf_distance_held_to_box_sq(bvh: BvhView, leaf: int, p: wp.vec3) -> float:
+    """Squared distance from p to the triangle at sorted leaf `leaf`, raised to its bounding box's where it
+    rounds below that. Exactly, a triangle is never nearer than its box; in float32, far from the mesh (beyond
+    about 30 domain sides), it can be by an ulp or two. Every box in the BVH holds the triangle's box, and a
+    box's rounded distance only falls as the box grows, so no leaf's value is below any box above it, and a
+    search that prunes by boxes finds the least value however it starts."""
+    a, b, c = leaf_triangle(bvh, leaf)
+    d_sq = triangle_distance_sq(p, a, b, c)
+    return wp.max(d_sq, box_distance_sq(p, wp.min(wp.min(a, b), c), wp.max(wp.max(a, b), c)))
 
 
 def _nearest_searches(past_tied_boxes: bool):
-    """The depth-first nearest-leaf search, built two ways: (nearest_in_subtree, nearest_leaf_within).
+    """The depth-first nearest-leaf search, built two ways: (nearest_in_range, nearest_in_subtree,
+    nearest_leaf_within).
 
     With `past_tied_boxes` a box exactly as far as the best so far is passed over when its first leaf comes
     after the best's, since none of its leaves can win the tie (`beats`). Seen from far enough (1e8 sizes
     away) every face ties in float32, and without it a search visits every face: 0.8 ms a point for 20K faces
-    on the CPU, 3 us with it (fifteenth outside check). The answers are the same within about 30 domain sides;
-    beyond, a face's float32 distance can round 1 or 2 ulps below its box's, and the search may name another
-    face that near in squared distance (docs/engine.md, "The pipeline", step 6). The corner
-    searches, which never meet such ties in bulk, take the search without it: the extra test made them 15%
-    slower on the H100 (2026-11-23); the queries take the search with it.
+    on the CPU, 3 us with it (fifteenth outside check). Passing over a tied box is exact only if no leaf under
+    it is valued below the box, so this search values a leaf by `leaf_distance_held_to_box_sq`; by the plain
+    triangle distance, which beyond about 30 domain sides can round an ulp or two below its box's, 403 of 4,000
+    searches off a box named another face than the least (review, sixteenth stop). The corner searches, which
+    never meet such ties in bulk and never look from that far, take the search without either: the extra test
+    made them 15% slower on the H100 (2026-11-23); the queries take the search with both.
     """
+
+    def leaf_sq(bvh: BvhView, leaf: int, p: wp.vec3) -> float:
+        if wp.static(past_tied_boxes):
+            return leaf_distance_held_to_box_sq(bvh, leaf, p)
+        return leaf_distance_sq(bvh, leaf, p)
+
+    leaf_sq = wp.func(leaf_sq, module="unique")
+
+    def nearest_in_range(bvh: BvhView, p: wp.vec3, first: int, count: int, best_leaf: int, best_sq: float):
+        for leaf in range(first, first + count):
+            d_sq = leaf_sq(bvh, leaf, p)
+            if beats(d_sq, leaf, best_sq, best_leaf):
+                best_sq = d_sq
+                best_leaf = leaf
+        return best_leaf, best_sq
+
+    _nearest_in_range = wp.func(nearest_in_range, module="unique")
 
     def may_hold(bvh: BvhView, box_sq: float, slot: int, best_sq: float, best_leaf: int) -> bool:
         """Whether the child in `slot`, whose box lies box_sq from the point, may hold a leaf that beats the
@@ -373,11 +393,11 @@ def _nearest_searches(past_tied_boxes: bool):
         best_leaf, best_sq, finished = nearest_in_subtree(bvh, p, 0, best_leaf, best_sq, budget)
         return best_leaf, best_sq, finished
 
-    return nearest_in_subtree, wp.func(nearest_leaf_within, module="unique")
+    return _nearest_in_range, nearest_in_subtree, wp.func(nearest_leaf_within, module="unique")
 
 
-nearest_in_subtree, nearest_leaf_within = _nearest_searches(past_tied_boxes=False)
-_, nearest_leaf_past_ties = _nearest_searches(past_tied_boxes=True)
+_nearest_in_range, nearest_in_subtree, nearest_leaf_within = _nearest_searches(past_tied_boxes=False)
+_, _, nearest_leaf_past_ties = _nearest_searches(past_tied_boxes=True)
 
 
 @wp.func

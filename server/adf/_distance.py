@@ -16,6 +16,7 @@ from badf.server.adf._buffers import DeviceBuffers, SideStream
 from badf.server.adf._bvh import (
     UNLIMITED_VISITS,
     BvhView,
+    leaf_distance_held_to_box_sq,
     leaf_distance_sq,
     leaf_triangle,
     nearest_in_slot,
@@ -394,24 +395,28 @@ class PointQuery:
 
 
 @wp.func
+def _held_to_band(seed: int, seed_sq: float, band: float):
+    """A search's start from its seed leaf at squared distance seed_sq: (seed, seed_sq), or (-1, band^2)
+    where the seed lies beyond `band` (> 0)."""
+    if band > 0.0 and band * band < seed_sq:
+        return -1, band * band
+    return seed, seed_sq
+
+
+@wp.func
 def _seed_bound(bvh: BvhView, p: wp.vec3, seed: int, band: float):
-    """A search's start from its seed leaf: (the seed, its squared distance), or (-1, band^2) where the
-    seed lies beyond `band` (> 0)."""
-    best_sq = leaf_distance_sq(bvh, seed, p)
-    best = seed
-    if band > 0.0 and band * band < best_sq:
-        best = -1
-        best_sq = band * band
-    return best, best_sq
+    """A corner search's start from its seed leaf (see _held_to_band)."""
+    return _held_to_band(seed, leaf_distance_sq(bvh, seed, p), band)
 
 
-def _banded_search(nearest_leaf):
-    """`nearest_leaf` (one of the BVH's two searches) started from a seed leaf and held to a band."""
+def _banded_search(nearest_leaf, leaf_distance_sq):
+    """`nearest_leaf` (one of the BVH's two searches, which values a leaf by `leaf_distance_sq`) started from a
+    seed leaf and held to a band."""
 
     def nearest_with_band(bvh: BvhView, p: wp.vec3, seed: int, band: float, budget: int):
         """Nearest leaf from a seed leaf in at most `budget` node visits: (leaf, squared distance, finished);
         leaf -1 when nothing lies within `band` (> 0). An unfinished search's answer is an upper bound."""
-        best, best_sq = _seed_bound(bvh, p, seed, band)
+        best, best_sq = _held_to_band(seed, leaf_distance_sq(bvh, seed, p), band)
         best, best_sq, finished = nearest_leaf(bvh, p, best, best_sq, budget)
         return best, best_sq, finished
 
@@ -419,8 +424,8 @@ def _banded_search(nearest_leaf):
 
 
 # the corner searches' and the queries' (which pass over tied boxes: see `_nearest_searches`)
-_nearest_with_band = _banded_search(nearest_leaf_within)
-_nearest_past_ties = _banded_search(nearest_leaf_past_ties)
+_nearest_with_band = _banded_search(nearest_leaf_within, leaf_distance_sq)
+_nearest_past_ties = _banded_search(nearest_leaf_past_ties, leaf_distance_held_to_box_sq)
 
 
 @wp.func
