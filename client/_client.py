@@ -23,6 +23,7 @@ import zenoh
 from badf.protocol import (
     DEFAULT_ENDPOINT,
     DEFAULT_LIMITS,
+    MAX_COORDINATE,
     QUERY_OUTPUTS,
     AccessDeniedError,
     BadfError,
@@ -51,6 +52,7 @@ from badf.protocol import (
     QueryRequest,
     RefineMethod,
     RegisterRequest,
+    RejectedInputError,
     SignMethod,
     SliceReply,
     SliceRequest,
@@ -518,7 +520,9 @@ class RemoteObject:
         ObjectUnavailableError once the client has seen the object's worker go (a frame sent in the few
         milliseconds before that is lost without a word), and ObjectNotFoundError after `delete()` on this
         handle. A frame streamed to an object that another client deleted is dropped by the router unseen:
-        `update()` waits for the worker's answer instead."""
+        `update()` waits for the worker's answer instead. So is a frame the worker refuses (one whose used
+        vertices span less than 1e-40), which still becomes the vertices `reregister()` sends; a wrong shape,
+        NaN, Inf and coordinates past +-1e18 are refused here, before the frame is kept."""
         if self._deleted:
             raise ObjectNotFoundError(f"{self.name!r} was deleted through this handle; reregister() serves it again")
         # a frame that fails to go uses up its number, as in update(), but is not kept for reregister(): a
@@ -623,6 +627,13 @@ class RemoteObject:
                 f"{self.name!r} is still served (this registration, or one made since): reregister() restores "
                 "an object whose worker is gone; Client.object(name) gives a handle on what is served, and "
                 "Client.register(..., replace=True) swaps it") from None
+        except RejectedInputError as error:
+            # a frame the worker takes can be one a registration cannot (all vertices at one point), and a
+            # streamed frame the worker refused is still the one kept (seventeenth outside check)
+            raise RejectedInputError(
+                f"reregister() sends the last vertices this handle sent (frame {self._vertices_frame}), and the "
+                f"worker refuses them as a new registration: {error.message}; register the object again with "
+                "Client.register and vertices it takes") from None
         self._adopt(info)
         return info
 
@@ -658,6 +669,7 @@ class RemoteObject:
 
     def _next_frame(self, vertices: np.ndarray) -> Frame:
         frame = Frame(self.name, self._frame + 1, vertices, registration=self._registration)
+        _check_coordinates(frame.vertices)
         if len(frame.vertices) != self.vertex_count:
             raise VertexCountMismatchError(
                 f"{self.name} has {self.vertex_count} vertices as this handle registered or found it; got "
@@ -670,6 +682,15 @@ class RemoteObject:
 
     def _saw(self, frame: int) -> None:
         self._frame = max(self._frame, frame)
+
+
+def _check_coordinates(vertices: np.ndarray) -> None:
+    """Refuses, as the worker would, a frame's coordinate past the engine's +-MAX_COORDINATE, before the frame
+    is sent or kept: stream() sent such a frame unchecked, the worker refused it unseen, and it became the
+    vertices reregister() sends, which the worker then refused (seventeenth outside check)."""
+    if vertices.size and not (vertices.min() >= -MAX_COORDINATE and vertices.max() <= MAX_COORDINATE):
+        raise RejectedInputError(
+            f"vertices must lie within +-{MAX_COORDINATE:g}, got a coordinate of {float(np.abs(vertices).max()):g}")
 
 
 # Clients not closed yet. At the interpreter's exit, before it waits for threads, they are closed: the

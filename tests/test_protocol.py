@@ -464,9 +464,10 @@ def test_the_client_tells_the_ranges_the_engine_takes() -> None:
     range of 0 to 8; a slice's resolution of 0 was told a range up to 2^63 - 1, the wire's bound, where the
     worker's limit is 2048 (sixteenth outside check)."""
     from badf.protocol import _messages
-    from badf.server.adf import _tolerances
+    from badf.server.adf import _inputs, _tolerances
 
     assert (_messages.MAX_HALO, _messages.MAX_DEPTH) == (_tolerances.MAX_HALO, _tolerances.MAX_DEPTH)
+    assert _messages.MAX_COORDINATE == _inputs.MAX_COORDINATE  # what the client refuses of a frame
     for halo in (-1, 3):
         with pytest.raises(InvalidOptionError, match=f"ObjectOptions.halo must be between 0 and 2, got {halo}"):
             ObjectOptions(halo=halo)

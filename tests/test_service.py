@@ -172,15 +172,15 @@ def test_the_rejected_input_examples_of_service_md_are_rejected_input(client: Cl
         client.register("far", far, faces, depth=3)
 
 def test_a_refused_update_leaves_what_reregister_restores(client: Client) -> None:
-    """An update the engine refuses (a coordinate beyond 1e18) replaced the handle's vertices, so a later
-    reregister() sent the refused frame again and failed with it; the last good vertices were gone."""
+    """An update the engine refuses (then a coordinate beyond 1e18, which the client now refuses itself; here a
+    mesh smaller than 1e-40) replaced the handle's vertices, so a later reregister() sent the refused frame
+    again and failed with it; the last good vertices were gone."""
     vertices, faces = meshes.load("sphere")
     obj = client.register("ball", vertices, faces, depth=4)
     good = vertices * np.float32(1.1)
     assert obj.update(good) == 1
-    bad = good.copy()
-    bad[0, 0] = 1e19  # finite in float32, beyond what the engine takes
-    with pytest.raises(RejectedInputError):
+    bad = good.astype(np.float64) * 1e-42  # finite, but smaller than the engine takes
+    with pytest.raises(RejectedInputError, match="smaller than 1e-40"):
         obj.update(bad)
     np.testing.assert_array_equal(obj.vertices, good)
     assert obj.frame == 2  # the refused frame used its number: later frames count on from it
@@ -294,6 +294,27 @@ def test_a_stream_that_fails_is_not_what_reregister_restores(shared_worker, shar
     np.testing.assert_array_equal(remote.vertices, sent)  # what reregister() sends
     with Client(shared_endpoint, timeout=60) as other:
         other.object("ball-streamed").delete()
+
+
+def test_a_frame_the_worker_would_refuse_is_not_streamed_or_kept(shared_worker, shared_endpoint: str) -> None:
+    """stream() sent vertices at 1e30, past the engine's +-1e18; the worker refused the frame unseen and it became
+    the vertices reregister() sends, which the worker then refused (seventeenth outside check). Such a frame is
+    refused before it goes now, as update() was by the worker, and uses no frame number. A frame the worker takes
+    but a registration cannot (every vertex at one point) makes reregister() say which vertices it sent."""
+    vertices, faces = meshes.load("sphere")
+    with Client(shared_endpoint, timeout=60) as client:
+        remote = client.register("ball-far-frame", vertices, faces, depth=4)
+        for send in (remote.stream, remote.update):
+            with pytest.raises(RejectedInputError, match=r"must lie within \+-1e\+18, got a coordinate of 1e\+30"):
+                send(vertices.astype(np.float64) + 1e30)
+        np.testing.assert_array_equal(remote.vertices, vertices)
+        assert remote.frame == 0
+        assert remote.update(np.zeros_like(vertices)) == 1  # a frame collapsed to a point is a valid frame
+        client.object("ball-far-frame").delete()  # as another client would
+        with pytest.raises(RejectedInputError, match=r"reregister\(\) sends the last vertices this handle sent "
+                                                     r"\(frame 1\).*must not all coincide.*Client.register"):
+            remote.reregister()
+        assert "ball-far-frame" not in [o.name for o in client.objects()]
 
 
 def test_a_batch_past_the_limits_is_refused_before_it_is_sent(shared_worker, shared_endpoint: str) -> None:
