@@ -746,6 +746,19 @@ def test_a_client_refuses_arguments_it_cannot_use(args, kwargs, message) -> None
         Client(*args, **kwargs)
 
 
+def test_a_client_given_routers_reaches_one_that_serves_wherever_it_is_in_the_list(shared_worker,
+                                                                                  shared_endpoint: str) -> None:
+    """Given [a router that is down, one that serves], the client never connected, however long its timeout:
+    Zenoh with a connect timeout gives up when the first endpoint of its list cannot be reached
+    (eclipse-zenoh/zenoh#1602; seventeenth outside check)."""
+    down = free_endpoint()  # nobody listens there
+    for endpoints in ([down, shared_endpoint], [down, down, shared_endpoint], [shared_endpoint, down]):
+        with Client(endpoints, timeout=6) as client:
+            assert client.workers()
+    with pytest.raises(WorkerUnavailableError, match="cannot reach a Zenoh router at"):
+        Client([down, free_endpoint()], timeout=1)
+
+
 def test_zenoh_errors_are_told_without_rust_source_locations() -> None:
     unreachable = free_endpoint()  # nobody listens there
     with pytest.raises(WorkerUnavailableError) as raised:
