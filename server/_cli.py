@@ -9,7 +9,13 @@ import sys
 
 from badf.cli._extras import missing_extra
 from badf.protocol import DEFAULT_ENDPOINT, BadfError, check_name
-from badf.server._cuda import NoCudaDeviceError, parse_gpus, requested_gpus, visible_cuda_device_count
+from badf.server._cuda import (
+    NoCudaDeviceError,
+    device_problem,
+    parse_gpus,
+    requested_gpus,
+    visible_cuda_device_count,
+)
 from badf.server._router import RouterSettings
 from badf.server._run import exit_now, run_gpu_workers, run_router, run_worker
 from badf.server._worker import WorkerSettings, check_stats_interval, default_worker_id
@@ -106,6 +112,12 @@ def run(args: argparse.Namespace) -> int:
         return 2
     except (BadfError, ValueError) as error:
         print(f"badf serve: {error}", file=sys.stderr)
+        return 2
+    # one line, as demo and bench say it, not the worker's traceback (`--device cuda` where there is no CUDA,
+    # seventeenth outside check)
+    problem = None if args.router_only or gpus is not None or args.device is None else device_problem(args.device)
+    if problem is not None:
+        print(f"badf serve: {problem}", file=sys.stderr)
         return 2
     if args.router_only:
         exit_now(run_router(router))

@@ -119,7 +119,10 @@ def engine_field_builder(device: str | None) -> tuple[FieldBuilder, str]:
 
     wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
 
-    resolved = wp.get_device(device).alias
+    try:
+        resolved = wp.get_device(device).alias
+    except RuntimeError as error:  # Warp's words for "cuda" where there is no CUDA
+        raise ValueError(str(error)) from None
 
     def build(vertices: np.ndarray, faces: np.ndarray, options: ObjectOptions) -> DistanceFieldLike:
         return DistanceField(

@@ -93,6 +93,9 @@ CASES = [
     (["view", "--connect", "<free>", "--port", "70000"], "badf view: --port must be an integer in 0..65535"),
     (["view", "--connect", "<free>", "--timeout", "0"], "badf view: --timeout must be a positive number"),
     (["view", "--connect", "<free>", "--object", "a/b"], "badf view: --object must be 1 to 100 characters"),
+    # serve named no devices for an unknown one, and died in a traceback for "cuda" where there is no CUDA
+    # (seventeenth outside check; that case is the test below, as it needs a machine without CUDA)
+    (["serve", "--listen", "<free>", "--device", "cuda:9"], "badf serve: --device 'cuda:9' is not a device here"),
 ]
 
 
@@ -109,6 +112,16 @@ def test_a_malformed_command_line_is_one_clear_line(args: list[str], message: st
     args = [stand_ins[arg]() if arg in stand_ins else arg for arg in args]
     done = subprocess.run([sys.executable, "-m", "badf.cli", *args], capture_output=True, text=True, timeout=120)
     _assert_one_clear_line(done, message)
+
+
+def test_serve_on_cuda_where_there_is_none_is_one_clear_line(endpoint: str) -> None:
+    import warp as wp
+
+    if wp.get_cuda_device_count() > 0:
+        pytest.skip("this machine has CUDA")
+    done = subprocess.run([sys.executable, "-m", "badf.cli", "serve", "--listen", endpoint, "--device", "cuda"],
+                          capture_output=True, text=True, timeout=120)
+    _assert_one_clear_line(done, "badf serve: --device 'cuda' is not a device here")
 
 
 def _assert_one_clear_line(done: subprocess.CompletedProcess, message: str) -> None:
