@@ -8,6 +8,7 @@ import math
 import pathlib
 import signal
 import sys
+import tempfile
 import threading
 from contextlib import contextmanager
 from typing import Iterator
@@ -106,7 +107,31 @@ def _largest_cube_grid() -> int:
 
 
 # Sizes past what a worker takes in one message: the run would build them (minutes, gigabytes) to be refused.
-_AT_MOST = {"points": DEFAULT_LIMITS.max_points, "batches": DEFAULT_LIMITS.max_points, "grid": _largest_cube_grid()}
+_IN_ONE_MESSAGE = "what a worker takes in one message"
+# Counts and times past any run's use: 1e10 round trips asked for 74.5 GiB of timings, and 10^20 seconds or
+# repeats ended in tracebacks, some after the worker had started (seventeenth outside check).
+_BEYOND_USE = "a bound on what a run can use"
+_WEEK_S = 7 * 24 * 3600
+_AT_MOST: dict[str, tuple[float, str]] = {
+    **{dest: (DEFAULT_LIMITS.max_points, _IN_ONE_MESSAGE) for dest in ("points", "batches")},
+    **{dest: (10**8, _BEYOND_USE) for dest in ("near_points", "query_batch", "large_batch")},  # in-process queries
+    "grid": (_largest_cube_grid(), _IN_ONE_MESSAGE),
+    **{dest: (10**6, _BEYOND_USE) for dest in ("repeat", "repeats", "round_trips", "max_rounds")},
+    **{dest: (256, _BEYOND_USE) for dest in ("workers", "clients")},
+    "objects": (10_000, _BEYOND_USE),
+    **{dest: (_WEEK_S, "a week") for dest in ("seconds", "follow_s", "budget", "warm_up", "warmup")},
+    "stream_fps": (10_000, _BEYOND_USE),
+}
+
+
+def _check_writable(folder: pathlib.Path, flag: str) -> None:
+    """BenchFlagError unless a file can be made in `folder`, tried by making one: results were lost at the
+    end of a run whose folder could not be written (/proc, a read-only mount; seventeenth outside check)."""
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        raise BenchFlagError(f"{flag}: cannot write in {str(folder)!r}: {error.strerror or error}") from None
 
 
 def check_flags(flags: argparse.Namespace) -> None:
@@ -132,25 +157,33 @@ def check_flags(flags: argparse.Namespace) -> None:
             raise BenchFlagError(f"{flag} must be in 1..{MAX_DEPTH}, got {value}")
         if rule & _AT_LEAST_ONE and not all(v >= 1 for v in values):
             raise BenchFlagError(f"{flag} must be at least 1, got {value}")
-        if dest in _AT_MOST and not all(v <= _AT_MOST[dest] for v in values):
-            raise BenchFlagError(f"{flag} must be at most {_AT_MOST[dest]:,} (what a worker takes in one message), "
-                                 f"got {value}")
         if rule & _POSITIVE_SECONDS and not (math.isfinite(value) and value > 0):
             raise BenchFlagError(f"{flag} must be a positive finite number, got {value}")
         if rule & _NOT_NEGATIVE and not (math.isfinite(value) and value >= 0):
             raise BenchFlagError(f"{flag} must be a finite number >= 0, got {value}")
+        if dest in _AT_MOST and not all(v <= _AT_MOST[dest][0] for v in values):
+            most, why = _AT_MOST[dest]
+            raise BenchFlagError(f"{flag} must be at most {most:,} ({why}), got {value}")
     for dest in ("out", "screenshot"):  # written at the end: a folder that is not there would lose the run
         path = getattr(flags, dest, None)
         if path is not None and not pathlib.Path(path).resolve().parent.is_dir():
             raise BenchFlagError(f"--{dest}: the folder of {path!r} does not exist")
         if path is not None and pathlib.Path(path).is_dir():  # the run's results were lost at the end
             raise BenchFlagError(f"--{dest}: {path!r} is a folder; name a file in it")
+        if path is not None:
+            _check_writable(pathlib.Path(path).resolve().parent, f"--{dest}")
     resolution = getattr(flags, "resolution", None)  # the viewer's: it refused others after the run had begun
     if resolution is not None and resolution not in RESOLUTIONS:
         raise BenchFlagError(f"--resolution must be one of {', '.join(map(str, RESOLUTIONS))}, got {resolution}")
     out_dir = getattr(flags, "out_dir", None)  # made if missing; a file there would fail the run at its end
     if out_dir is not None and pathlib.Path(out_dir).exists() and not pathlib.Path(out_dir).is_dir():
         raise BenchFlagError(f"--out-dir: {out_dir!r} is a file; name a folder")
+    if out_dir is not None:
+        try:
+            pathlib.Path(out_dir).mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise BenchFlagError(f"--out-dir: cannot make {out_dir!r}: {error.strerror or error}") from None
+        _check_writable(pathlib.Path(out_dir), "--out-dir")
     render = getattr(flags, "render", None)
     if render is not None and not pathlib.Path(render).is_file():
         raise BenchFlagError(f"--render: no such file {render!r}")

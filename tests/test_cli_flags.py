@@ -75,7 +75,7 @@ CASES = [
      "--resolution must be one of 64, 128, 256, 512, 1024, got 100"),
     (["bench", "accuracy", "--out-dir", "<not-npz>"], "is a file; name a folder"),
     (["bench", "accuracy", "--render", "<engine-json>"], "not the results of `badf bench accuracy` (they are of"),
-    (["bench", "scaleout", "--small", "--device", "cpu", "--mesh", "<no-faces>", "--workers", "100000"],
+    (["bench", "scaleout", "--small", "--device", "cpu", "--mesh", "<no-faces>", "--workers", "200"],
      "--workers must be 1 to"),
     # flags run as if absent (outside check, 2026-11-22)
     (["bench", "engine", "--quick", "--mesh", "<no-faces>", "--block-sweep"], "--block-sweep and --register-sweep go with"),
@@ -93,6 +93,15 @@ CASES = [
     (["view", "--connect", "<free>", "--port", "70000"], "badf view: --port must be an integer in 0..65535"),
     (["view", "--connect", "<free>", "--timeout", "0"], "badf view: --timeout must be a positive number"),
     (["view", "--connect", "<free>", "--object", "a/b"], "badf view: --object must be 1 to 100 characters"),
+    # counts and times past any use ended in tracebacks, some after the worker had started, and a folder that
+    # cannot be written lost the run's results at its end (seventeenth outside check)
+    (["bench", "service", "--small", "--mesh", "<no-faces>", "--round-trips", "10000000000"],
+     "--round-trips must be at most 1,000,000 (a bound on what a run can use), got 10000000000"),
+    (["bench", "soak", "--seconds", "99999999999999999999"], "--seconds must be at most 604,800 (a week), got 1e+20"),
+    (["bench", "accuracy", "--workers", "99999999999999999999"], "--workers must be at most 256"),
+    (["bench", "scaleout", "--small", "--mesh", "<no-faces>", "--workers", "100000"], "--workers must be at most 256"),
+    (["bench", "engine", "--mesh", "<no-faces>", "--out", "/proc/badf-bench.json"], "--out: cannot write in '/proc'"),
+    (["bench", "accuracy", "--out-dir", "/proc/badf-bench"], "--out-dir: cannot make '/proc/badf-bench'"),
     # serve named no devices for an unknown one, and died in a traceback for "cuda" where there is no CUDA
     # (seventeenth outside check; that case is the test below, as it needs a machine without CUDA)
     (["serve", "--listen", "<free>", "--device", "cuda:9"], "badf serve: --device 'cuda:9' is not a device here"),
