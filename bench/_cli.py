@@ -166,12 +166,14 @@ def check_flags(flags: argparse.Namespace) -> None:
             raise BenchFlagError(f"{flag} must be at most {most:,} ({why}), got {value}")
     for dest in ("out", "screenshot"):  # written at the end: a folder that is not there would lose the run
         path = getattr(flags, dest, None)
-        if path is not None and not pathlib.Path(path).resolve().parent.is_dir():
+        if path is None:
+            continue
+        folder = pathlib.Path(path).resolve().parent
+        if not folder.is_dir():
             raise BenchFlagError(f"--{dest}: the folder of {path!r} does not exist")
-        if path is not None and pathlib.Path(path).is_dir():  # the run's results were lost at the end
+        if pathlib.Path(path).is_dir():  # the run's results were lost at the end
             raise BenchFlagError(f"--{dest}: {path!r} is a folder; name a file in it")
-        if path is not None:
-            _check_writable(pathlib.Path(path).resolve().parent, f"--{dest}")
+        _check_writable(folder, f"--{dest}")
     resolution = getattr(flags, "resolution", None)  # the viewer's: it refused others after the run had begun
     if resolution is not None and resolution not in RESOLUTIONS:
         raise BenchFlagError(f"--resolution must be one of {', '.join(map(str, RESOLUTIONS))}, got {resolution}")

@@ -81,9 +81,9 @@ class Client:
     then, and one dropped without it when it is collected). Like a file, it closes at the end of any `with`
     block on it, an inner one included. `connect` is a router's endpoint or a list of them, tried in turn
     until one answers. `timeout` (seconds) bounds connecting (all of the list) and is the default for every
-    call; `namespace` must match the workers'. `config_file` is a Zenoh JSON5 file (TLS, authentication) used as the base configuration.
-    `limits` bound the replies taken and the requests sent: a request past them is refused before it goes
-    (the workers' defaults are the same).
+    call; `namespace` must match the workers'. `config_file` is a Zenoh JSON5 file (TLS, authentication)
+    used as the base configuration. `limits` bound the replies taken and the requests sent: a request past
+    them is refused before it goes (the workers' defaults are the same).
     """
 
     def __init__(

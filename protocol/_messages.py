@@ -50,7 +50,9 @@ AXES: tuple[str, ...] = get_args(Axis)
 # Sanity bounds checked on decode; the engine enforces its own, narrower ranges (RejectedInputError).
 MAX_DEPTH = 10  # the engine's deepest octree (badf.server.adf), so a client is told the range that works
 MAX_HALO = 2  # the engine's widest halo, likewise (a halo of 3 to 8 passed the client and the worker refused it)
-MAX_COORDINATE = 1.0e18  # the engine's largest coordinate magnitude (its squares must stay within float32)
+# Not checked on decode: the engine's largest coordinate magnitude (its squares must stay within float32),
+# which the client checks a frame against before it sends or keeps it
+MAX_COORDINATE = 1.0e18
 MAX_ERROR_MESSAGE_LENGTH = 4000
 # Bits of SliceReply.cell_flags.
 CELL_LEAF = 1
