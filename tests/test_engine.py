@@ -1199,6 +1199,8 @@ def test_parts_touching_at_a_point_keep_their_own_vertex_normals(device):
     for lift in (0.0, 0.35):
         moved, _ = meshes.cone_on_cube(lift)
         field.update(moved)
+        # parts welded at a point only may part: each keeps its pseudonormals
+        assert field.info()["sign_this_frame"] == "pseudonormal" and not field.info()["seams_torn"]
         # around the cube's corner, within 0.2 of it
         points = corner + rng.uniform(-0.2, 0.2, size=(600, 3))
         truth = oracle.signed_distance(points, moved, faces)
@@ -1207,6 +1209,50 @@ def test_parts_touching_at_a_point_keep_their_own_vertex_normals(device):
             clear = np.abs(truth) > margin
             got = field.query(points[clear], mode=mode).distance
             assert np.array_equal(np.sign(got), np.sign(truth[clear])), (lift, mode)
+
+
+def _unwelded(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh as a soup: every face with three vertices of its own (as STL writes it)."""
+    return vertices[faces].reshape(-1, 3).astype(np.float64), np.arange(3 * len(faces), dtype=np.int32).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("shape", ["cube exported per face", "sphere soup"])
+def test_a_frame_that_pulls_welded_vertices_apart_is_signed_by_winding_numbers(device, shape):
+    """Vertices at one position are welded for the topology, so a soup or a mesh split at its seams reads as
+    closed and gets pseudonormals. A later frame may move those copies apart (same faces, a crack opens):
+    the first frame's fans then mix faces that no longer meet, and points outside the opened shape read
+    inside (141 of 3,764 for a cube whose lid was lifted, 753 of 3,793 for a sphere soup's upper half; 18th
+    outside check). Such a frame is signed by winding numbers, like a fresh field on it."""
+    if shape == "cube exported per face":
+        vertices, faces = meshes.box()
+        vertices, faces = _unwelded(vertices, faces)
+        lifted = vertices[:, 2] > 0.0  # the lid's copies of the top corners, and the sides' too
+        top = np.zeros(len(vertices), dtype=bool)
+        top[faces[np.all(lifted[faces], axis=1)].reshape(-1)] = True  # the lid's own vertices only
+        moved = vertices.copy()
+        moved[top, 2] += 0.5
+    else:
+        vertices, faces = _unwelded(*meshes.sphere())
+        moved = vertices.copy()
+        upper = np.repeat(np.mean(vertices[faces], axis=1)[:, 2] > 0.0, 3)  # whole faces of the upper half
+        moved[upper, 2] += 1.5
+    field = DistanceField(vertices, faces, depth=5, device=device)
+    info = field.info()
+    assert info["topology"]["closed"] and info["sign_this_frame"] == "pseudonormal" and not info["seams_torn"]
+    rng = np.random.default_rng(59)
+    lo, hi = moved.min(axis=0) - 0.3, moved.max(axis=0) + 0.3
+    points = rng.uniform(lo, hi, size=(3000, 3))
+    truth = oracle.signed_distance(points, moved, faces)
+    winding = oracle.winding_number(points, moved, faces)
+    clear = (np.abs(truth) > 1e-3 * oracle.bbox_diagonal(moved)) & (np.abs(np.abs(winding) - 0.5) > 0.1)
+    field.update(moved)
+    info = field.info()
+    assert info["seams_torn"] and info["sign_this_frame"] == "winding"
+    got = field.query(points[clear], mode="exact").distance
+    assert np.array_equal(np.sign(got), np.sign(truth[clear]))
+    field.update(vertices)  # closed again: back to pseudonormals
+    info = field.info()
+    assert not info["seams_torn"] and info["sign_this_frame"] == "pseudonormal"
 
 
 def test_unsigned_adf_normals_near_a_sheet_point_away_from_it(device):

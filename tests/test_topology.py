@@ -51,7 +51,18 @@ def reference_topology(faces: np.ndarray, vertices: np.ndarray) -> dict:
         "nonmanifold_edges": int(np.sum(counts > 2)),
         "inconsistent_edges": int(np.sum((counts == 2) & (orientation_sum != 0))),
         "repeated_vertex_faces": int(np.sum(repeated)),
+        "seam_pairs": reference_seam_pairs(np.asarray(faces), corner_fan),
     }
+
+
+def reference_seam_pairs(faces: np.ndarray, corner_fan: np.ndarray) -> np.ndarray:
+    """(K, 2): each vertex id at a corner whose fan's smallest corner names another id, with that id, sorted."""
+    raw, fan = faces.reshape(-1).tolist(), corner_fan.reshape(-1).tolist()
+    first: dict[int, int] = {}
+    for corner, k in enumerate(fan):
+        first.setdefault(k, raw[corner])
+    pairs = sorted({(v, first[k]) for v, k in zip(raw, fan) if v != first[k]})
+    return np.array(pairs, dtype=np.int32).reshape(-1, 2)
 
 
 def reference_fans(welded_faces: np.ndarray, usable: np.ndarray) -> np.ndarray:
@@ -126,6 +137,7 @@ def test_the_awkward_sphere_has_every_defect():
     assert topology.boundary_edges > 0 and topology.nonmanifold_edges > 0
     assert topology.inconsistent_edges > 0 and topology.repeated_vertex_faces > 0
     assert topology.welded_count < len(vertices)  # the seam and the -0.0 copy were welded
+    assert len(topology.seam_pairs) > 0  # which a frame must keep together for the pseudonormals to hold
 
 
 def test_parts_touching_at_a_point_get_a_fan_each():
@@ -134,3 +146,4 @@ def test_parts_touching_at_a_point_get_a_fan_each():
     topology = analyse_topology(faces, vertices)
     assert topology.closed
     assert topology.fan_count == topology.welded_count + 1
+    assert len(topology.seam_pairs) == 0  # the parts may move apart

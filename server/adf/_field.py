@@ -583,6 +583,8 @@ class DistanceField:
             "parts_face_both_ways": self._parts_disagree,
             # found in the first frame (and every frame then signed by winding numbers), or in this one
             "parts_overlap": self._parts_overlap or self._normals.frame_parts_overlap,
+            # this frame pulled apart vertices the first frame's weld joined along an edge: signed by winding
+            "seams_torn": self._normals.frame_seams_torn,
             "topology": self._topology.summary(),
             "domain": {"centre": self._domain.centre.tolist(), "side": self._domain.side,
                        "finest_cell": self._domain.side / (1 << self._depth)},
@@ -776,6 +778,7 @@ class DistanceField:
         wp.copy(self._report, self._normals.winding_frame, dest_offset=k, count=1)
         wp.copy(self._report, self._octree.level_starts, dest_offset=k + 1, count=self._depth + 1)
         wp.copy(self._report, self._normals.parts_overlap, dest_offset=k + 2 + self._depth, count=1)
+        wp.copy(self._report, self._normals.seams_torn, dest_offset=k + 3 + self._depth, count=1)
         return sizes
 
     def _take_report(self) -> bool:
@@ -788,7 +791,7 @@ class DistanceField:
         if any(count > capacity for count, capacity in zip(counts, self._report_sizes)):
             return False
         self._octree.take_counts(counts, report[k + 1 : k + 2 + self._depth])
-        self._normals.set_frame_method(int(report[k]), int(report[k + 2 + self._depth]))
+        self._normals.set_frame_method(int(report[k]), int(report[k + 2 + self._depth]), int(report[k + 3 + self._depth]))
         return True
 
     # -- for tests and tools --------------------------------------------------------------------------

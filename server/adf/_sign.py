@@ -79,6 +79,9 @@ class Topology:
     nonmanifold_edges: int  # edges with more than two faces
     inconsistent_edges: int  # two-face edges that both faces traverse in the same direction
     repeated_vertex_faces: int  # faces naming a vertex twice
+    # (K, 2) int32: pairs of distinct vertex ids that the weld joined within one fan (a seam, or a soup's shared
+    # corners); the pseudonormals hold only while each pair still coincides (Pseudonormals.choose_frame_method)
+    seam_pairs: np.ndarray
 
     @property
     def closed(self) -> bool:
@@ -148,7 +151,25 @@ def analyse_topology(faces: np.ndarray, vertices: np.ndarray) -> Topology:
         nonmanifold_edges=int(np.sum(counts > 2)),
         inconsistent_edges=int(np.sum(two & (orientation_sum != 0))),
         repeated_vertex_faces=int(np.sum(repeated)),
+        seam_pairs=_seam_pairs(faces, corner_fan, fan_order, fan_corner_start),
     )
+
+
+def _seam_pairs(faces: np.ndarray, corner_fan: np.ndarray, fan_order: np.ndarray,
+                fan_corner_start: np.ndarray) -> np.ndarray:
+    """Each vertex id that a fan's corners name other than the fan's first corner's, with that one.
+
+    A fan is joined through edges, so two ids in one fan are copies welded along an edge: if a later frame
+    pulls them apart, the mesh has a crack there that the first frame's edges and fans do not show. Copies
+    that are each in a fan of their own (parts touching at a point) are left out: they may part."""
+    raw = np.asarray(faces, dtype=np.int64).reshape(-1)
+    if len(raw) == 0:
+        return np.zeros((0, 2), dtype=np.int32)
+    first = raw[fan_order[fan_corner_start[:-1]]]  # the first corner's vertex, per fan
+    other = first[corner_fan]
+    split = raw != other
+    pairs = np.unique(np.stack([raw[split], other[split]], axis=1), axis=0)
+    return pairs.astype(np.int32).reshape(-1, 2)
 
 
 def _fans(f: np.ndarray, usable: np.ndarray, sorted_edge: np.ndarray, order: np.ndarray,
@@ -367,6 +388,11 @@ class Pseudonormals:
         self.winding_frame = b.array("sign.winding_frame", 1, wp.int32)
         # whether this frame's watched faces found parts running into each other (watch_parts)
         self.parts_overlap = b.array("sign.parts_overlap", 1, wp.int32)
+        # whether this frame pulled apart vertices that the first frame's weld joined (Topology.seam_pairs)
+        self.seam_pairs = upload("sign.seam_pairs", topology.seam_pairs if active else np.zeros((0, 2), np.int32),
+                                 wp.vec2i)
+        self.seams_torn = b.array("sign.seams_torn", 1, wp.int32)
+        self.seams_torn.zero_()
         self._buffers = b
         self._watched: wp.array | None = None
         self._window_start = None
@@ -374,6 +400,7 @@ class Pseudonormals:
         # what the last frame used (set_frame_method): pseudonormal frames that enclose nothing use winding
         self.frame_method = method
         self.frame_parts_overlap = False
+        self.frame_seams_torn = False
 
     def upload_extent(self, extent: float) -> None:
         """The frame's extent, which the enclosed-volume test scales with (sent with the vertices)."""
@@ -408,15 +435,21 @@ class Pseudonormals:
     def choose_frame_method(self, vertices: wp.array, bvh: BvhView, stream: wp.Stream | None = None) -> None:
         """Whether this frame is signed by its pseudonormals, decided on the device (read with the report).
 
-        Pseudonormals hold only while the mesh encloses volume, outward, with no part inside another: a frame
-        collapsed flat or turned inside out (its faces then coincide or face inwards), or, where watched, one
-        whose parts run into each other, is signed by winding numbers instead. Queued on `stream` (None: the
+        Pseudonormals hold only while the mesh is closed and encloses volume, outward, with no part inside
+        another: a frame collapsed flat or turned inside out (its faces then coincide or face inwards), one that
+        pulls apart vertices welded along an edge in the first frame (a seam, a soup's shared corners: the mesh
+        has a crack the first frame's edges do not show), or, where watched, one whose parts run into each
+        other, is signed by winding numbers instead. Queued on `stream` (None: the
         current one) after `update`'s normals, with `bvh` refitted to `vertices`; the watch is a short launch
         of long walks, so on CUDA it runs beside the corner searches."""
         if self.method != "pseudonormal":
             return
         with wp.ScopedStream(stream, sync_enter=False) if stream is not None else contextlib.nullcontext():
             self.parts_overlap.zero_()
+            self.seams_torn.zero_()
+            if self.seam_pairs.shape[0] > 0:
+                wp.launch(_seams_torn, dim=self.seam_pairs.shape[0], inputs=[vertices, self.seam_pairs],
+                          outputs=[self.seams_torn], device=self.device)
             if self._watched is not None:
                 wp.launch(_solid_beside_face, dim=self.watch_per_frame,
                           inputs=[bvh, self.view(), vertices, self.faces, self._watched, self._window_start,
@@ -424,13 +457,16 @@ class Pseudonormals:
                           outputs=[self.parts_overlap], device=self.device)
                 wp.launch(_advance_window, dim=1, inputs=[self._window_start, self.watch_per_frame, len(self._watched)],
                           device=self.device)
-            wp.launch(_choose_frame_method, dim=1, inputs=[self.volume_area, self.extent, self.parts_overlap],
+            wp.launch(_choose_frame_method, dim=1,
+                      inputs=[self.volume_area, self.extent, self.parts_overlap, self.seams_torn],
                       outputs=[self.winding_frame], device=self.device)
 
-    def set_frame_method(self, winding_frame: int, parts_overlap: int) -> None:
-        """Record what the last frame used, and whether its watched faces found parts overlapping, from its report."""
+    def set_frame_method(self, winding_frame: int, parts_overlap: int, seams_torn: int) -> None:
+        """Record what the last frame used, whether its watched faces found parts overlapping and whether it
+        pulled welded vertices apart, from its report."""
         self.frame_method = "winding" if self.method == "pseudonormal" and winding_frame else self.method
         self.frame_parts_overlap = bool(parts_overlap)
+        self.frame_seams_torn = bool(seams_torn)
 
     @property
     def code(self) -> int:
@@ -588,11 +624,21 @@ def _advance_window(start: wp.array(dtype=wp.int32), step: int, count: int):
 
 
 @wp.kernel(enable_backward=False)
+def _seams_torn(vertices: wp.array(dtype=wp.vec3), pairs: wp.array(dtype=wp.vec2i), torn: wp.array(dtype=wp.int32)):
+    pair = pairs[wp.tid()]
+    a = vertices[pair[0]]
+    b = vertices[pair[1]]
+    if a[0] != b[0] or a[1] != b[1] or a[2] != b[2]:
+        torn[0] = 1
+
+
+@wp.kernel(enable_backward=False)
 def _choose_frame_method(volume_area: wp.array(dtype=wp.float32), extent: wp.array(dtype=wp.float32),
-                         parts_overlap: wp.array(dtype=wp.int32), winding_frame: wp.array(dtype=wp.int32)):
+                         parts_overlap: wp.array(dtype=wp.int32), seams_torn: wp.array(dtype=wp.int32),
+                         winding_frame: wp.array(dtype=wp.int32)):
     volume = volume_area[0]
     encloses = wp.abs(volume) > _MIN_ENCLOSED * volume_area[1] * extent[0]
-    winding_frame[0] = wp.where(volume > 0.0 and encloses and parts_overlap[0] == 0, 0, 1)
+    winding_frame[0] = wp.where(volume > 0.0 and encloses and parts_overlap[0] == 0 and seams_torn[0] == 0, 0, 1)
 
 
 @wp.kernel(enable_backward=False)
