@@ -48,6 +48,7 @@ VERTICES, FACES = meshes.single_triangle()
         ({"sign": "inside"}, "sign must be one of auto, pseudonormal, winding, none"),
         ({"band": -1.0}, "band must be a positive finite number"),
         ({"band": float("nan")}, "band must be a positive finite number"),
+        ({"band": np.True_}, "band must be a positive number or None, got np.True_"),  # was a band of 1.0
         ({"band": 10**400}, "band must be a positive finite number"),
         ({"refine": "everywhere"}, "refine must be one of surface, centroid"),
         ({"halo": 3}, r"halo must be an integer in 0..2"),

@@ -131,7 +131,7 @@ def check_halo(halo) -> int:
 def check_band(band) -> float | None:
     if band is None:
         return None
-    if isinstance(band, (bool, str, bytes)):
+    if isinstance(band, (bool, np.bool_, str, bytes)):
         raise InvalidInputError(f"band must be a positive number or None, got {band!r}")
     try:
         value = float(band)
