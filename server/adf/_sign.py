@@ -420,7 +420,8 @@ class Pseudonormals:
         self.watch_per_frame = min(int(per_frame), len(order))
 
     def update(self, vertices: wp.array) -> None:
-        """This frame's face, vertex and edge normals, and the volume it encloses."""
+        """This frame's face, vertex and edge normals, the volume it encloses, and whether it pulled welded
+        copies apart (read by choose_frame_method)."""
         if self.method != "pseudonormal":
             return
         self.volume_area.zero_()
@@ -431,6 +432,10 @@ class Pseudonormals:
                   outputs=[self.vertex_normal], device=self.device)
         wp.launch(_edge_normals, dim=self.edge_count + 1, inputs=[self.edge_face_start, self.edge_face, self.face_normal],
                   outputs=[self.edge_normal], device=self.device)
+        if self.seam_pairs.shape[0] > 0:  # else seams_torn stays zero
+            self.seams_torn.zero_()
+            wp.launch(_seams_torn, dim=self.seam_pairs.shape[0], inputs=[vertices, self.seam_pairs],
+                      outputs=[self.seams_torn], device=self.device)
 
     def choose_frame_method(self, vertices: wp.array, bvh: BvhView, stream: wp.Stream | None = None) -> None:
         """Whether this frame is signed by its pseudonormals, decided on the device (read with the report).
@@ -446,10 +451,6 @@ class Pseudonormals:
             return
         with wp.ScopedStream(stream, sync_enter=False) if stream is not None else contextlib.nullcontext():
             self.parts_overlap.zero_()
-            self.seams_torn.zero_()
-            if self.seam_pairs.shape[0] > 0:
-                wp.launch(_seams_torn, dim=self.seam_pairs.shape[0], inputs=[vertices, self.seam_pairs],
-                          outputs=[self.seams_torn], device=self.device)
             if self._watched is not None:
                 wp.launch(_solid_beside_face, dim=self.watch_per_frame,
                           inputs=[bvh, self.view(), vertices, self.faces, self._watched, self._window_start,
