@@ -466,6 +466,7 @@ class ServedObject:
                 | cut.cell_is_empty[keep] * np.uint8(CELL_EMPTY),
             }
         extent = ((cut.u_range[0], cut.v_range[0]), (cut.u_range[1], cut.v_range[1]))
+        self._refresh_snapshot()
         return SliceReply(self.name, self._frame, request.axis, request.position, extent, cut.distance, **cells)
 
     def _answer_delete(self, query: zenoh.Query) -> None:
