@@ -18,7 +18,7 @@ from badf.server._cuda import (
 )
 from badf.server._router import RouterSettings
 from badf.server._run import exit_now, run_gpu_workers, run_router, run_worker
-from badf.server._worker import WorkerSettings, check_stats_interval, default_worker_id
+from badf.server._worker import DEFAULT_STATS_INTERVAL_S, WorkerSettings, check_stats_interval, default_worker_id
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -61,14 +61,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="this worker's id in key expressions (default: <host>-<pid>); with --gpus, the prefix of the ids",
     )  # fmt: skip
     parser.add_argument(
-        "--stats-interval", type=float, default=10.0, metavar="SECONDS",
-        help="seconds between stats lines (default: 10)",
+        "--stats-interval", type=float, default=None, metavar="SECONDS",
+        help=f"seconds between a worker's stats lines (default: {DEFAULT_STATS_INTERVAL_S:g})",
     )
+
+
+def check_endpoint_lists(args: argparse.Namespace) -> None:
+    """An endpoint listed twice in --listen (it was 'is a port of ... taken?' at start, exit 1), or both listened
+    on and joined (a worker joining itself, which Zenoh then logs each second; eighteenth outside check)."""
+    listen = list(args.listen or [])
+    for endpoint in listen:
+        if listen.count(endpoint) > 1:
+            raise ValueError(f"--listen names {endpoint} twice")
+        if endpoint in args.connect:
+            raise ValueError(f"--connect {endpoint} is this process's own --listen endpoint; name another router")
 
 
 def settings_from(args: argparse.Namespace) -> WorkerSettings:
     # checked under the flags' names first: the settings name their fields ("stats_interval_s must be ...")
-    check_stats_interval(args.stats_interval, "--stats-interval")
+    stats_interval = DEFAULT_STATS_INTERVAL_S if args.stats_interval is None else args.stats_interval
+    check_stats_interval(stats_interval, "--stats-interval")
     if args.worker_id is not None:
         check_name(args.worker_id, what="--worker-id")
     return WorkerSettings(
@@ -79,15 +91,16 @@ def settings_from(args: argparse.Namespace) -> WorkerSettings:
         listen=tuple(args.listen) if args.listen else None,
         connect=tuple(args.connect),
         config_file=args.config,
-        stats_interval_s=args.stats_interval,
+        stats_interval_s=stats_interval,
     )
 
 
 def router_settings_from(args: argparse.Namespace) -> RouterSettings:
-    for given, flag in ((args.worker_id is not None, "--worker-id"), (args.mode != "router", "--mode")):
+    # a router has no worker, so no stats lines (the interval was taken and ignored; eighteenth outside check)
+    for given, flag in ((args.worker_id is not None, "--worker-id"), (args.mode != "router", "--mode"),
+                        (args.stats_interval is not None, "--stats-interval")):
         if given:
             raise ValueError(f"{flag} does not apply to --router-only")
-    check_stats_interval(args.stats_interval, "--stats-interval")  # the router's own stats lines
     return RouterSettings(
         namespace=args.namespace,
         listen=tuple(args.listen) if args.listen else None,
@@ -102,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
         print(missing, file=sys.stderr)
         return 2
     try:
+        check_endpoint_lists(args)
         if args.router_only:
             router = router_settings_from(args)
         else:

@@ -49,6 +49,7 @@ log = logging.getLogger("badf.server")
 
 # How long a starting worker waits for the routers to say whether its id is taken (they answer at once)
 _ID_CHECK_TIMEOUT_S = 5.0
+DEFAULT_STATS_INTERVAL_S = 10.0  # seconds between a worker's stats lines (`--stats-interval`)
 
 FieldBuilder = Callable[[np.ndarray, np.ndarray, ObjectOptions], DistanceFieldLike]
 
@@ -81,7 +82,7 @@ class WorkerSettings:
     connect: tuple[str, ...] = ()
     config_file: str | None = None
     limits: Limits = DEFAULT_LIMITS
-    stats_interval_s: float = 10.0
+    stats_interval_s: float = DEFAULT_STATS_INTERVAL_S
     max_waiting_requests: int = 32
     max_waiting_registrations: int = 8
 

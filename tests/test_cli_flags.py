@@ -47,7 +47,13 @@ CASES = [
     (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--device", "gpu9"], "--device 'gpu9' is not a device"),
     (["demo", "--frames", "1", "--listen", "<free>", "--host", "999.9.9.9"], "--host: cannot serve the page on host"),
     (["serve", "--listen", "<free>", "--worker-id", ""], "--worker-id must be 1 to 100 characters"),
-    (["serve", "--router-only", "--listen", "<free>", "--stats-interval", "-5"], "--stats-interval must be a positive"),
+    (["serve", "--listen", "<free>", "--stats-interval", "-5"], "--stats-interval must be a positive"),
+    # an endpoint twice (exit 1, 'is a port taken?'), and a worker joining itself (raw Zenoh errors each second)
+    (["serve", "--listen", "tcp/127.0.0.1:9", "--listen", "tcp/127.0.0.1:9"], "--listen names tcp/127.0.0.1:9 twice"),
+    (["serve", "--listen", "tcp/127.0.0.1:9", "--connect", "tcp/127.0.0.1:9"], "is this process's own --listen endpoint"),
+    (["serve", "--router-only", "--listen", "tcp/127.0.0.1:9", "--connect", "tcp/127.0.0.1:9"], "own --listen endpoint"),
+    # a router prints no stats lines: the flag was taken and ignored (eighteenth outside check)
+    (["serve", "--router-only", "--listen", "<free>", "--stats-interval", "5"], "--stats-interval does not apply to --router-only"),
     (["serve", "--listen", "<free>", "--stats-interval", "nan"], "--stats-interval must be a positive finite number"),
     (["serve", "--listen", "<free>", "--stats-interval", "inf"], "--stats-interval must be a positive finite number"),
     (["serve", "--listen", "<free>", "--stats-interval", "1e-9"], "in 0.1..1e6, got 1e-09"),
