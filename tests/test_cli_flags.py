@@ -96,6 +96,9 @@ CASES = [
     (["view", "--connect", "<free>", "--max-slice-hz", "0"], "badf view: --max-slice-hz must be a finite positive"),
     (["view", "--connect", "<free>", "--max-mesh-hz", "-1"], "badf view: --max-mesh-hz must be a finite positive"),
     (["view", "--connect", "<free>", "--max-info-hz", "nan"], "badf view: --max-info-hz must be a finite positive"),
+    # a rate past any use was taken (1e300: no limit at all; 1e-300: never a poll; nineteenth outside check)
+    (["view", "--connect", "<free>", "--max-info-hz", "1e300"], "--max-info-hz must be a finite positive number in 0.01..1000"),
+    (["view", "--connect", "<free>", "--max-slice-hz", "1e-300"], "in 0.01..1000 per second, got 1e-300"),
     (["view", "--connect", "<free>", "--port", "70000"], "badf view: --port must be an integer in 0..65535"),
     (["view", "--connect", "<free>", "--timeout", "0"], "badf view: --timeout must be a positive number"),
     (["view", "--connect", "<free>", "--object", "a/b"], "badf view: --object must be 1 to 100 characters"),

@@ -123,11 +123,17 @@ def check_port(port: object, name: str) -> None:
         raise ValueError(f"{name} must be an integer in 0..65535, got {port!r}")
 
 
+# Rates the viewer's polls take, per second: below, a poll a few minutes apart reads as a viewer that hangs; above,
+# the waits are shorter than one request's round trip, so the rate no longer limits anything (1e300 was taken)
+MIN_RATE_HZ, MAX_RATE_HZ = 0.01, 1000.0
+
+
 def check_rate(value: object, name: str) -> None:
-    """ValueError, naming the rate as `name` (a field or a flag), unless it is a finite positive number."""
+    """ValueError, naming the rate as `name` (a field or a flag), unless it is a number in MIN_RATE_HZ..MAX_RATE_HZ."""
     is_number = isinstance(value, (int, float)) and not isinstance(value, bool)
-    if not (is_number and math.isfinite(value) and value > 0):
-        raise ValueError(f"{name} must be a finite positive number, got {value!r}")
+    if not (is_number and math.isfinite(value) and MIN_RATE_HZ <= value <= MAX_RATE_HZ):
+        raise ValueError(f"{name} must be a finite positive number in {MIN_RATE_HZ:g}..{MAX_RATE_HZ:g} per second, "
+                         f"got {value!r}")
 
 
 @dataclass(frozen=True)
