@@ -69,9 +69,11 @@ SOLID_BESIDE_REACH = 1.0e-4
 # update (20K triangles) and 0.042 s of the armadillo's 0.62 s (86K); `sign="pseudonormal"` skips it.
 SOLID_WATCH_SAMPLE = 4096
 
-# The smallest band, as a fraction of the domain's side: a narrower one is below what float32 coordinates
-# resolve (about 6e-8 of the side), and its square would underflow. Registration refuses a smaller band; a
-# band that becomes smaller later (the domain grew) is widened to it.
+# The smallest band, as a fraction of the domain's side. Bands from here up to what float32 coordinates resolve
+# (about 6e-8 of the side) are taken and act as a band of about zero: every corner off the surface reads
+# +-band. Far below that, a band's square (the searches compare squared distances) would leave float32's normal
+# numbers (a side of about 1 in local units: 2^-80 here, 2^-126 there). Registration refuses a smaller band; a band that
+# becomes smaller later (the domain grew) is widened to it.
 MIN_BAND = 2.0**-40
 
 # Query points farther than this many domain sides from the domain's centre are moved in along the line to
