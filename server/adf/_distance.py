@@ -1132,16 +1132,18 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 # are asked for, so a distance does not depend on them)
                 weak = length < _WEAK_GRADIENT and not beyond and not flat
                 clear = scale > 1 or farthest > diagonal or nearest > 0.5 * diagonal
-                # every corner of a finest leaf clamped at the band says nothing of the surface, which may
-                # still cross the leaf between them (a band narrower than a cell: an unsigned field read
-                # points on its sheet as beyond the band): such a point is answered exactly
-                clamped_finest = flat and scale == 1
+                # every corner of a leaf the surface may cross clamped at the band says nothing of the surface,
+                # which may still cross the leaf between them (a band narrower than a cell: an unsigned field read
+                # points on its sheet as beyond the band): such a point is answered exactly. The surface may cross
+                # a finest leaf, and under refine="centroid" a coarser one too (nineteenth outside check: 344 of
+                # 5,000 points on a sphere read +band with no face)
+                clamped_near = flat and (scale == 1 or tree.coarse_leaves_clear == 0)
                 # a leaf with corners clamped at the band and others not reads too near inside it: a clamped
                 # corner's +-band stands for a larger distance, so points beyond the band read inside it by up to
                 # two cells (outside check, 2026-11-23). Such a point reading inside the band is answered exactly,
                 # so band or not, ADF answers are the same after clamping, or exact
                 short_of_band = clamped and not flat and not beyond
-                if not (has_inside and has_outside and clear) and not weak and not clamped_finest and not short_of_band:
+                if not (has_inside and has_outside and clear) and not weak and not clamped_near and not short_of_band:
                     if outputs & _OUT_DISTANCE:
                         out_distance[i] = value
                     if outputs & _OUT_NORMAL:

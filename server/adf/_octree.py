@@ -68,6 +68,9 @@ class OctreeView:
     cell: float  # finest cell size
     region_lower: wp.vec3  # the region of interest (local coordinates): ADF queries outside it are exact
     region_upper: wp.vec3
+    # 1 when every cell the surface touches is a finest leaf (refine="surface"), so no coarser leaf holds surface;
+    # 0 under the paper's rule (refine="centroid"), where a large triangle crosses coarse leaves too
+    coarse_leaves_clear: int
     child_mask: wp.array(dtype=wp.int32)  # (internal,) bit o set when child o holds surface
     first_child: wp.array(dtype=wp.int32)  # (internal,) node index of the first child present
     corner_slot: wp.array(dtype=wp.int32)  # (internal * 27,) unique-corner index of each lattice point
@@ -174,6 +177,7 @@ class Octree:
         v.origin = origin
         v.cell = side / float(1 << self.depth)
         v.region_lower, v.region_upper = self.region_box
+        v.coarse_leaves_clear = 1 if self.refine == "surface" else 0
         v.child_mask = self.child_mask
         v.first_child = self.first_child
         v.corner_slot = self.corner_slot
