@@ -240,25 +240,32 @@ def measure_allocations(vertices, faces, *, device: str, depth: int, frames: int
 
 
 def measure_traversals(field, vertices, faces, *, device: str, repeat: int) -> dict:
-    """Nearest-face search at the field's corners: this engine's BVH against Warp's wp.Mesh BVH
+    """Nearest-face search at the field's corners: this engine's BVH (binary, and the 4-wide view the corner
+    searches walk) against Warp's wp.Mesh BVH
     (mesh_query_point_no_sign), each from no bound and from the bound of the corner's known nearest face
     (what coherence gives). Distances only, no sign; mismatches are counted against each other."""
     import warp as wp
 
-    from badf.server.adf._bvh import UNLIMITED_VISITS, BvhView, leaf_distance_sq, nearest_leaf_within
+    from badf.server.adf._bvh import (UNLIMITED_VISITS, BvhView, leaf_distance_sq, nearest_leaf_wide,
+                                      nearest_leaf_within)
 
-    @wp.kernel(enable_backward=False)
-    def ours(bvh: BvhView, points: wp.array(dtype=wp.vec3), seeds: wp.array(dtype=wp.int32), use_seed: int,
-             out: wp.array(dtype=wp.float32)):
-        i = wp.tid()
-        p = points[i]
-        best = int(-1)
-        best_sq = float(3.0e38)
-        if use_seed != 0:
-            best = seeds[i]
-            best_sq = leaf_distance_sq(bvh, best, p)
-        leaf, d_sq, finished = nearest_leaf_within(bvh, p, best, best_sq, UNLIMITED_VISITS)
-        out[i] = wp.sqrt(d_sq)
+    def engine_search(nearest_leaf):
+        def ours(bvh: BvhView, points: wp.array(dtype=wp.vec3), seeds: wp.array(dtype=wp.int32), use_seed: int,
+                 out: wp.array(dtype=wp.float32)):
+            i = wp.tid()
+            p = points[i]
+            best = int(-1)
+            best_sq = float(3.0e38)
+            if use_seed != 0:
+                best = seeds[i]
+                best_sq = leaf_distance_sq(bvh, best, p)
+            leaf, d_sq, finished = nearest_leaf(bvh, p, best, best_sq, UNLIMITED_VISITS)
+            out[i] = wp.sqrt(d_sq)
+
+        return wp.kernel(ours, name=f"traversal_{nearest_leaf.key}", enable_backward=False, module="unique")
+
+    # the binary tree (the exact queries' walk) and its 4-wide view (the corner searches')
+    binary, wide = engine_search(nearest_leaf_within), engine_search(nearest_leaf_wide)
 
     @wp.kernel(enable_backward=False)
     def warps(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), bound: wp.array(dtype=wp.float32), use_seed: int,
@@ -288,10 +295,10 @@ def measure_traversals(field, vertices, faces, *, device: str, repeat: int) -> d
     n = len(local)
     results = {}
     out = {"corners": n}
-    for name, kernel, first in (("engine_bvh", ours, bvh), ("warp_mesh", warps, mesh.id)):
+    for name, kernel, first in (("engine_bvh", binary, bvh), ("engine_wide", wide, bvh), ("warp_mesh", warps, mesh.id)):
         for use_seed in (0, 1):
             d = wp.zeros(n, dtype=wp.float32, device=device)
-            launch = lambda _: wp.launch(kernel, dim=n, inputs=[first, points, seeds if kernel is ours else bound,
+            launch = lambda _: wp.launch(kernel, dim=n, inputs=[first, points, bound if kernel is warps else seeds,
                                                                  use_seed], outputs=[d], device=device)
             launch(0)
             label = f"{name}_{'bounded' if use_seed else 'unbounded'}_ms"

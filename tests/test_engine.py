@@ -19,6 +19,7 @@ from badf.server.adf._bvh import (
     leaf_distance_held_to_box_sq,
     leaf_distance_sq,
     nearest_leaf_past_ties,
+    nearest_leaf_wide,
     nearest_leaf_within,
     winding_number,
 )
@@ -1042,6 +1043,78 @@ def test_a_part_far_from_the_rest_leaves_the_bvh_pruning_near_the_rest(device):
     wp.launch(_budgeted_corner_searches, dim=len(points), inputs=[field._bvh.view(), local, seeds, 128],
               outputs=[finished], device=device)
     assert finished.numpy().all(), f"{np.count_nonzero(finished.numpy() == 0)} of 200 searches took over 128 visits"
+
+
+@wp.kernel(module="unique", module_options=EXACT_ROUNDING)  # rounded as the engine's searches are
+def _binary_and_wide_searches(bvh: BvhView, points: wp.array(dtype=wp.vec3), seeds: wp.array(dtype=wp.int32),
+                              leaves: wp.array2d(dtype=wp.int32), squares: wp.array2d(dtype=wp.float32)):
+    i = wp.tid()
+    p = points[i]
+    start = leaf_distance_sq(bvh, seeds[i], p)
+    leaf, d_sq, done = nearest_leaf_within(bvh, p, seeds[i], start, UNLIMITED_VISITS)
+    leaves[i, 0] = leaf
+    squares[i, 0] = d_sq
+    leaf, d_sq, done = nearest_leaf_wide(bvh, p, seeds[i], start, UNLIMITED_VISITS)
+    leaves[i, 1] = leaf
+    squares[i, 1] = d_sq
+
+
+def _wide_tree_leaves(field: DistanceField) -> list[int]:
+    """The leaves under the 4-wide view's root, each entry's box checked against the boxes below it."""
+    bvh = field._bvh
+    planes = bvh.wide.planes.numpy().reshape(-1, 6, 4)
+    child = bvh.wide.child.numpy().reshape(-1, 4)
+    triangles = bvh.triangles.numpy().reshape(-1, 3, 4)[:, :, :3]
+    leaves, stack = [], [0]
+    while stack:
+        node = stack.pop()
+        lower, upper = planes[node, :3].T, planes[node, 3:].T  # (4, 3) each
+        for j in range(4):
+            if child[node, j] == 2**31 - 1:
+                continue
+            if child[node, j] < 0:
+                leaf = -1 - int(child[node, j])
+                leaves.append(leaf)
+                inside = triangles[leaf]
+            else:
+                grand = int(child[node, j])
+                inside = np.concatenate([planes[grand, :3].T, planes[grand, 3:].T])
+                inside = inside[np.all(inside < 1e38, axis=1) & np.all(inside > -1e38, axis=1)]
+                stack.append(grand)
+            assert np.all(inside >= lower[j]) and np.all(inside <= upper[j]), f"node {node} entry {j} holds less"
+    return leaves
+
+
+@pytest.mark.parametrize("name", ["stanford-bunny", "box", "sphere", "sheet", "single-triangle", "two-parts"])
+def test_the_corner_searches_4_wide_view_finds_the_binary_trees_answers(device, name):
+    """The corner searches walk a 4-wide view of the BVH (every other level folded away). It must hold every
+    triangle once, each entry's box must hold what lies under it, and its search must name the leaf, and the
+    squared distance, that the binary tree's names, from any start: near and far, on vertices and edges where
+    faces tie, from the nearest leaf and from arbitrary ones."""
+    if name == "two-parts":  # a part far from the rest: a deep, lopsided tree
+        sphere = trimesh.creation.icosphere(subdivisions=3)
+        vertices = np.vstack([sphere.vertices, [[300.0, 0, 0], [300.01, 0, 0], [300.0, 0.01, 0]]])
+        faces = np.vstack([sphere.faces, [[len(sphere.vertices), len(sphere.vertices) + 1, len(sphere.vertices) + 2]]])
+    else:
+        vertices, faces = meshes.load(name)
+    field = DistanceField(vertices, faces, depth=4, sign="none", device=device)
+    if len(faces) > 1:
+        assert sorted(_wide_tree_leaves(field)) == list(range(len(faces)))
+    rng = np.random.default_rng(5)
+    centre, side = domain_of(field)
+    points = np.concatenate([centre + (rng.random((400, 3)) - 0.5) * 1.5 * side,
+                             vertices[rng.integers(0, len(vertices), 100)],
+                             meshes.surface_samples(vertices, faces, 1, rng)[:200]])
+    local = wp.array(field._domain.to_local(points), dtype=wp.vec3, device=device)
+    for seeds in (rng.integers(0, len(faces), len(points)), np.zeros(len(points), int)):
+        leaves = wp.zeros((len(points), 2), dtype=wp.int32, device=device)
+        squares = wp.zeros((len(points), 2), dtype=wp.float32, device=device)
+        wp.launch(_binary_and_wide_searches, dim=len(points),
+                  inputs=[field._bvh.view(), local, wp.array(seeds, dtype=wp.int32, device=device)],
+                  outputs=[leaves, squares], device=device)
+        leaves, squares = leaves.numpy(), squares.numpy()
+        assert np.array_equal(leaves[:, 0], leaves[:, 1]), f"{np.count_nonzero(leaves[:, 0] != leaves[:, 1])} leaves differ"
+        assert np.array_equal(squares[:, 0], squares[:, 1])
 
 
 @wp.kernel

@@ -21,7 +21,7 @@ from badf.server.adf._bvh import (
     leaf_triangle,
     nearest_in_slot,
     nearest_leaf_past_ties,
-    nearest_leaf_within,
+    nearest_leaf_wide,
     spatial_seed,
     winding_number_careful,
 )
@@ -423,8 +423,8 @@ def _banded_search(nearest_leaf, leaf_distance_sq):
     return wp.func(nearest_with_band, module="unique")
 
 
-# the corner searches' and the queries' (which pass over tied boxes: see `_nearest_searches`)
-_nearest_with_band = _banded_search(nearest_leaf_within, leaf_distance_sq)
+# the corner searches' (over the 4-wide view) and the queries' (which pass over tied boxes: see `_nearest_searches`)
+_nearest_with_band = _banded_search(nearest_leaf_wide, leaf_distance_sq)
 _nearest_past_ties = _banded_search(nearest_leaf_past_ties, leaf_distance_held_to_box_sq)
 
 
