@@ -172,7 +172,9 @@ class Bvh:
                 outputs=[self.slot_child, self.slot_first, self.slot_count, self.parent_slot],
                 device=self.device,
             )
-            self.wide.link(self.slot_child, self.slot_count, self.slot_first, self.parent_slot)
+            # the radix tree's left and right links are spent once the slots hold them: the 4-wide view's link
+            # takes them for its own per-node scratch
+            self.wide.link(self.slot_child, self.slot_count, self.slot_first, self.parent_slot, left, right)
         self._cuts.clear()
 
     def refit(self, vertices: wp.array, faces: wp.array) -> None:
@@ -234,16 +236,15 @@ class WideTree:
         self.internal_count = face_count - 1
         self.capacity = (2 * face_count - 1) // 3 + 1
         self.device = buffers.device
-        self._buffers = buffers
         self.slot = buffers.array("bvh.wide.slot", 4 * self.capacity, wp.int32)
         self.child = buffers.array("bvh.wide.child", 4 * self.capacity, wp.int32)
         self.planes = buffers.array("bvh.wide.planes", 6 * self.capacity, wp.vec4)
 
-    def link(self, slot_child: wp.array, slot_count: wp.array, slot_first: wp.array, parent_slot: wp.array) -> None:
-        """Number the even-depth nodes (in the binary tree's order) and link each one's entries."""
+    def link(self, slot_child: wp.array, slot_count: wp.array, slot_first: wp.array, parent_slot: wp.array,
+             even: wp.array, rank: wp.array) -> None:
+        """Number the even-depth nodes (in the binary tree's order) and link each one's entries; `even` and
+        `rank` are scratch of one int32 per internal node."""
         internal = self.internal_count
-        even = self._buffers.ensure("bvh.build.wide_even", internal, wp.int32)
-        rank = self._buffers.ensure("bvh.build.wide_rank", internal, wp.int32)
         self.slot.fill_(-1)
         self.child.fill_(NO_CHILD)
         wp.launch(_even_depth, dim=internal, inputs=[parent_slot], outputs=[even], device=self.device)
