@@ -5,7 +5,10 @@ one thread walking the BVH once for all of them, against the engine's own kernel
 A brick's walk opens a node when its box comes within the largest of the brick's bounds of the box around the
 brick's corners (that distance is never more than any one corner's, so every box a corner's own walk opens is
 opened too) and tests each triangle it reaches against every corner, keeping each corner's least (distance,
-leaf) as `beats` orders them. The answers are then the engine's; the probe counts any that differ."""
+leaf) as `beats` orders them. The answers are then the engine's; the probe counts any that differ.
+
+It ran on the H100 at aa2a613 (docs/results/bricks-h100-0123), when the engine's corner searches walked the
+binary tree; since 92e1c93 they walk its 4-wide view, which the bricks here do not."""
 import sys
 import time
 

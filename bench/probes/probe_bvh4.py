@@ -5,7 +5,11 @@ The 4-wide tree is the engine's binary tree with every other level folded away (
 refitted tree): a node's children are its binary node's grandchildren, or a child itself where that is a single
 triangle. A visit reads four boxes (128 bytes) where the binary walk reads two (64), and a walk takes about half
 the steps, each of which waits on the load before it. The search keeps the engine's order of answers (`beats`:
-the least distance, then the least leaf), so its answers are the engine's; the probe counts any that differ."""
+the least distance, then the least leaf), so its answers are the engine's; the probe counts any that differ.
+
+It ran on the H100 at 9ab8bc3 (docs/results/bvh4-h100-0129). Since 92e1c93 the engine's corner searches walk
+the planes variant themselves (`nearest_leaf_wide` over `WideTree`), so its "binary (engine)" rows now time
+that walk; check out 9ab8bc3 to compare with the binary one."""
 import sys
 import time
 
