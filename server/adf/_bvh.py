@@ -226,10 +226,11 @@ class WideTree:
 
     Its nodes are the binary internal nodes at even depth, numbered in the binary tree's order. Node k's entry j
     is one of the binary slots two levels down (or one, where the slot holds a single triangle): `slot` keeps
-    which, so a refit copies the binary tree's boxes into the planes. Every other internal node has a parent at
-    even depth, and every even-depth node but the root a parent at odd depth with at most two children, so at
-    most (2n - 1) / 3 of the n - 1 internal nodes are at even depth: the arrays are sized for that and hold
-    NO_CHILD past the count.
+    which, so a refit copies the binary tree's boxes into the planes. Every even-depth node but the root has a
+    parent at odd depth, which has at most two children, so with E even-depth and O odd-depth internal nodes,
+    E <= 1 + 2 O and E + O = n - 1 give E <= (2n - 1) / 3: the arrays are sized for that (the count is not read
+    back at a build) and hold NO_CHILD past it. The view takes a child of at most LEAF_SIZE triangles as a single
+    triangle, which it is while LEAF_SIZE is 1.
     """
 
     def __init__(self, face_count: int, buffers: DeviceBuffers):
