@@ -14,6 +14,8 @@ from badf.server.adf import DistanceField, InvalidInputError
 from badf.server.adf._distance import EXACT_ROUNDING
 from badf.server.adf._geometry import quantize
 from badf.server.adf._bvh import (
+    EMPTY_BOX,
+    NO_CHILD,
     UNLIMITED_VISITS,
     BvhView,
     leaf_distance_held_to_box_sq,
@@ -1070,7 +1072,7 @@ def _wide_tree_leaves(field: DistanceField) -> list[int]:
         node = stack.pop()
         lower, upper = planes[node, :3].T, planes[node, 3:].T  # (4, 3) each
         for j in range(4):
-            if child[node, j] == 2**31 - 1:
+            if child[node, j] == NO_CHILD:
                 continue
             if child[node, j] < 0:
                 leaf = -1 - int(child[node, j])
@@ -1079,7 +1081,7 @@ def _wide_tree_leaves(field: DistanceField) -> list[int]:
             else:
                 grand = int(child[node, j])
                 inside = np.concatenate([planes[grand, :3].T, planes[grand, 3:].T])
-                inside = inside[np.all(inside < 1e38, axis=1) & np.all(inside > -1e38, axis=1)]
+                inside = inside[np.all(np.abs(inside) < np.float32(EMPTY_BOX), axis=1)]  # its absent entries left out
                 stack.append(grand)
             assert np.all(inside >= lower[j]) and np.all(inside <= upper[j]), f"node {node} entry {j} holds less"
     return leaves

@@ -559,9 +559,7 @@ def nearest_leaf_wide(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float, 
     (distance, leaf), whatever the order they walk in. Triangles are tested first, then the nodes pushed
     farthest first, so that the nearest is walked next."""
     if bvh.internal_count == 0:
-        d_sq = leaf_distance_sq(bvh, 0, p)
-        if beats(d_sq, 0, best_sq, best_leaf):
-            return 0, d_sq, True
+        best_leaf, best_sq = _nearest_in_range(bvh, p, 0, 1, best_leaf, best_sq)
         return best_leaf, best_sq, True
     nodes = wide_stack_int()
     bounds = wide_stack_float()
