@@ -1,6 +1,8 @@
 """What the probes share: a coherent update of a mesh at depth 7 whose corner-search launch is captured,
 so a probe can launch its own variant of the search over exactly the engine's inputs."""
 
+import time
+
 import numpy as np
 import warp as wp
 
@@ -37,3 +39,37 @@ def captured_search(path: str, device: str):
     inputs = captured["inputs"][:SEEDING_INPUTS]
     count = int(inputs[1].numpy()[0])
     return field, inputs, count, np.abs(field._corners.value.numpy()[:count])
+
+
+def device_times(launches, device: str, repeats: int) -> tuple[float, float]:
+    """(median, least) ms of `launches()`: device time between two events on CUDA, wall time on the CPU."""
+    times = []
+    for _ in range(repeats):
+        wp.synchronize()
+        if device != "cpu":
+            start, end = wp.Event(enable_timing=True), wp.Event(enable_timing=True)
+            wp.record_event(start)
+        else:
+            started = time.perf_counter()
+        launches()
+        if device != "cpu":
+            wp.record_event(end)
+            wp.synchronize()
+            times.append(wp.get_event_elapsed_time(start, end))
+        else:
+            times.append((time.perf_counter() - started) * 1e3)
+    return float(np.median(times)), float(np.min(times))
+
+
+def engine_search(inputs: list, capacity: int, distance: wp.array, nearest: wp.array, device: str):
+    """A launcher of the engine's corner searches over the captured inputs, every corner searched whole."""
+    dummy = wp.zeros(1, dtype=int, device=device)
+    dummy64 = wp.zeros(1, dtype=wp.int64, device=device)
+
+    def launch():
+        wp.launch(_distance.corner_searches, dim=capacity,
+                  inputs=inputs + [_distance.UNLIMITED_VISITS, 0, dummy, dummy],
+                  outputs=[distance, nearest, dummy, dummy, dummy64, dummy64], device=device,
+                  block_dim=_distance.SEARCH_BLOCK_DIM)
+
+    return launch

@@ -10,7 +10,6 @@ leaf) as `beats` orders them. The answers are then the engine's; the probe count
 It ran on the H100 at aa2a613 (docs/results/bricks-h100-0123), when the engine's corner searches walked the
 binary tree; since 92e1c93 they walk its 4-wide view, which the bricks here do not."""
 import sys
-import time
 
 import numpy as np
 import warp as wp
@@ -23,7 +22,7 @@ from badf.server.adf._geometry import (box_distance_sq, load_vec4, solid_angle_c
                                        triangle_distance_sq)
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _capture import captured_search  # noqa: E402
+from _capture import captured_search, device_times, engine_search  # noqa: E402
 
 
 @wp.func
@@ -288,32 +287,11 @@ def main():
     z = lambda dtype: wp.zeros(capacity, dtype=dtype, device=device)  # noqa: E731
     distance, nearest, head, rank, first = z(float), z(int), z(int), z(int), z(int)
     bricks = wp.zeros(1, dtype=int, device=device)
-    dummy = wp.zeros(1, dtype=int, device=device)
-    dummy64 = wp.zeros(1, dtype=wp.int64, device=device)
 
     def timed(launches):
-        times = []
-        for _ in range(repeats):
-            wp.synchronize()
-            if cuda:
-                start, end = wp.Event(enable_timing=True), wp.Event(enable_timing=True)
-                wp.record_event(start)
-            else:
-                t0 = time.perf_counter()
-            launches()
-            if cuda:
-                wp.record_event(end)
-                wp.synchronize()
-                times.append(wp.get_event_elapsed_time(start, end))
-            else:
-                times.append((time.perf_counter() - t0) * 1e3)
-        return float(np.median(times)), float(np.min(times))
+        return device_times(launches, device, repeats)
 
-    def engine():
-        wp.launch(D.corner_searches, dim=capacity,
-                  inputs=inputs + [D.UNLIMITED_VISITS, 0, dummy, dummy],
-                  outputs=[distance, nearest, dummy, dummy, dummy64, dummy64], device=device,
-                  block_dim=D.SEARCH_BLOCK_DIM)
+    engine = engine_search(inputs, capacity, distance, nearest, device)
 
     side_stream = wp.Stream(device) if cuda else None
     inside = wp.zeros(capacity, dtype=wp.uint8, device=device)

@@ -21,7 +21,7 @@ from badf.server.adf._bvh import BvhView, beats, leaf_distance_sq
 from badf.server.adf._geometry import box_distance_sq, load_vec4, stack_float, stack_int
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _capture import captured_search  # noqa: E402
+from _capture import captured_search, device_times, engine_search  # noqa: E402
 
 EMPTY = 3.0e38  # an absent child's box: lower above upper, so no point comes within reach of it
 
@@ -228,7 +228,6 @@ def main():
     field, inputs, n, truth = captured_search(path, device)
     capacity = inputs[2]
     engine_near = field._corners.leaf.numpy()[:n].copy()
-    cuda = device != "cpu"
     t0 = time.perf_counter()
     lower_4, upper_4, child_4, nodes_4 = collapse(field._bvh)
     collapse_ms = (time.perf_counter() - t0) * 1e3
@@ -240,31 +239,11 @@ def main():
     child_s = wp.array(child_soa, dtype=wp.int32, device=device)
     distance = wp.zeros(capacity, dtype=float, device=device)
     nearest = wp.zeros(capacity, dtype=int, device=device)
-    dummy = wp.zeros(1, dtype=int, device=device)
-    dummy64 = wp.zeros(1, dtype=wp.int64, device=device)
 
-    def timed(launch):
-        times = []
-        for _ in range(repeats):
-            wp.synchronize()
-            if cuda:
-                start, end = wp.Event(enable_timing=True), wp.Event(enable_timing=True)
-                wp.record_event(start)
-            else:
-                t = time.perf_counter()
-            launch()
-            if cuda:
-                wp.record_event(end)
-                wp.synchronize()
-                times.append(wp.get_event_elapsed_time(start, end))
-            else:
-                times.append((time.perf_counter() - t) * 1e3)
-        return float(np.median(times)), float(np.min(times))
+    def timed(launches):
+        return device_times(launches, device, repeats)
 
-    def engine():
-        wp.launch(D.corner_searches, dim=capacity, inputs=inputs + [D.UNLIMITED_VISITS, 0, dummy, dummy],
-                  outputs=[distance, nearest, dummy, dummy, dummy64, dummy64], device=device,
-                  block_dim=D.SEARCH_BLOCK_DIM)
+    engine = engine_search(inputs, capacity, distance, nearest, device)
 
     def wide():
         wp.launch(corner_searches_bvh4, dim=capacity, inputs=inputs + [lower, upper, child],
