@@ -12,6 +12,7 @@ import oracle
 import tolerances as tol
 from badf.server.adf import DistanceField, InvalidInputError
 from badf.server.adf._distance import EXACT_ROUNDING
+from badf.server.adf._tolerances import WINDING_FAR_FIELD
 from badf.server.adf._geometry import quantize
 from badf.server.adf._bvh import (
     EMPTY_BOX,
@@ -550,6 +551,80 @@ def test_fast_winding_numbers_match_the_oracle_at_the_corners(device, name):
     wp.launch(_winding_numbers, dim=len(positions), inputs=[field._bvh.view(), local], outputs=[w], device=device)
     error = np.abs(w.numpy() - oracle.winding_number(positions, vertices, faces))
     assert error.max() <= tol.FAST_WINDING, f"largest error {error.max():.3g} of {len(positions)} corners"
+
+
+def _binary_expansion_walk(field: DistanceField, point: np.ndarray) -> tuple[float, float]:
+    """Winding number at a point in the BVH's coordinates by a walk down the binary tree in float64, taking the
+    engine's expansions (its stored moments) wherever their far test holds: the terms a binary walk takes.
+    Also the least relative margin of any far test it made, where float32 and float64 could choose apart."""
+    bvh = field._bvh
+    internal = bvh.internal_count
+    slot_child = bvh.slot_child.numpy()
+    moments = bvh.node_moments.numpy().astype(np.float64).reshape(-1, 4, 4)
+    triangles = bvh.triangles.numpy().astype(np.float64).reshape(-1, 3, 4)[:, :, :3]
+    p = point.astype(np.float64)
+
+    def far(centre, radius):
+        dist = np.linalg.norm(centre - p)
+        return dist > WINDING_FAR_FIELD * radius, abs(dist / (WINDING_FAR_FIELD * radius) - 1.0), dist
+
+    total, margin, stack = 0.0, np.inf, [0]
+    while stack:
+        node = stack.pop()
+        for side in range(2):
+            child = int(slot_child[2 * node + side])
+            if child >= internal:
+                a, b, c = triangles[child - internal]
+                centre = (a + b + c) / 3
+                is_far, m, dist = far(centre, max(np.linalg.norm(v - centre) for v in (a, b, c)))
+                margin = min(margin, m)
+                if is_far:
+                    total += 0.5 * np.cross(b - a, c - a) @ (centre - p) / dist**3
+                else:
+                    x, y, z = a - p, b - p, c - p
+                    lx, ly, lz = np.linalg.norm(x), np.linalg.norm(y), np.linalg.norm(z)
+                    total += 2 * np.arctan2(np.linalg.det(np.array([x, y, z])),
+                                            lx * ly * lz + (x @ y) * lz + (x @ z) * ly + (y @ z) * lx)
+                continue
+            m0, m1, s0, s1 = moments[child]
+            is_far, m, dist = far(m0[:3], m0[3])
+            margin = min(margin, m)
+            if not is_far:
+                stack.append(child)
+                continue
+            u = (m0[:3] - p) / dist
+            s = np.array([[s0[0], s0[3], s1[0]], [s0[3], s0[1], s1[1]], [s1[0], s1[1], s0[2]]])
+            total += (m1[:3] @ u + (np.trace(s) - 3 * u @ s @ u) / dist) / dist**2
+    return total / (4 * np.pi), margin
+
+
+@pytest.mark.parametrize("name", ["stanford-bunny", "torus", "sheet", "two-parts"])
+def test_the_winding_walk_takes_the_binary_trees_expansions(device, name):
+    """The winding numbers walk the 4-wide view but must take their expansions at the binary tree's nodes, where
+    a binary walk would (a side far as a whole, else its entries one by one): against a float64 walk down the
+    binary tree with the engine's moments, every point whose far tests all lie clear of their threshold (where
+    float32 and float64 cannot choose apart) agrees to float32 rounding, a far closer match than the expansions'
+    own error (tol.FAST_WINDING), which a walk opening other nodes would show."""
+    if name == "two-parts":  # a part far from the rest: a deep, lopsided tree
+        sphere = trimesh.creation.icosphere(subdivisions=3)
+        vertices = np.vstack([sphere.vertices, [[300.0, 0, 0], [300.01, 0, 0], [300.0, 0.01, 0]]])
+        faces = np.vstack([sphere.faces, [[len(sphere.vertices), len(sphere.vertices) + 1, len(sphere.vertices) + 2]]])
+    else:
+        vertices, faces = getattr(meshes, name)() if name in ("torus", "sheet") else meshes.load(name)
+    field = DistanceField(vertices, faces, depth=4, sign="winding", device=device)
+    rng = np.random.default_rng(31)
+    centre, side = domain_of(field)
+    points = np.concatenate([centre + (rng.random((150, 3)) - 0.5) * 1.5 * side,
+                             meshes.surface_samples(vertices, faces, 1, rng)[:100] + 1e-3 * side])
+    local = field._domain.to_local(points)
+    w = wp.zeros(len(points), dtype=wp.float32, device=device)
+    wp.launch(_winding_numbers, dim=len(points), inputs=[field._bvh.view(), wp.array(local, dtype=wp.vec3, device=device)],
+              outputs=[w], device=device)
+    reference, margin = np.array([_binary_expansion_walk(field, q) for q in local]).T
+    clear = margin > 1e-4
+    assert np.count_nonzero(clear) >= 0.9 * len(points), f"only {np.count_nonzero(clear)} points clear of the thresholds"
+    error = np.abs(w.numpy() - reference)[clear]
+    assert error.max() <= 1e-5, f"largest difference {error.max():.3g} from the binary walk's expansions"
 
 
 def test_slice_grid_and_crossing_cells(device):
