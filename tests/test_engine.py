@@ -599,12 +599,13 @@ def _binary_expansion_walk(field: DistanceField, point: np.ndarray) -> tuple[flo
 
 
 @pytest.mark.parametrize("name", ["stanford-bunny", "torus", "sheet", "two-parts"])
-def test_the_winding_walk_takes_the_binary_trees_expansions(device, name):
-    """The winding numbers walk the 4-wide view but must take their expansions at the binary tree's nodes, where
-    a binary walk would (a side far as a whole, else its entries one by one): against a float64 walk down the
-    binary tree with the engine's moments, every point whose far tests all lie clear of their threshold (where
-    float32 and float64 cannot choose apart) agrees to float32 rounding, a far closer match than the expansions'
-    own error (tol.FAST_WINDING), which a walk opening other nodes would show."""
+def test_the_winding_walk_sums_its_expansions_to_float32_rounding(device, name):
+    """The corners' float32 winding numbers against a float64 walk down the binary tree that takes the same
+    terms (the engine's stored moments where their far test holds, exact solid angles elsewhere): every point
+    whose far tests all lie clear of their threshold (where float32 and float64 cannot choose apart) agrees to
+    float32 rounding. This holds the moments, their refit and the far field's formula far closer than the
+    oracle test above, which must leave room for the expansions' own error (tol.FAST_WINDING); it also holds
+    any other walk (a 4-wide one was tried, 2026-11-28) to the binary tree's terms."""
     if name == "two-parts":  # a part far from the rest: a deep, lopsided tree
         sphere = trimesh.creation.icosphere(subdivisions=3)
         vertices = np.vstack([sphere.vertices, [[300.0, 0, 0], [300.01, 0, 0], [300.0, 0.01, 0]]])

@@ -110,12 +110,6 @@ class BvhView:
     # (>= 0), a single triangle's leaf (-1 - leaf), or NO_CHILD. Node 0 is the root.
     wide_planes: wp.array(dtype=wp.vec4)
     wide_child: wp.array(dtype=wp.int32)
-    # For the winding numbers' walk over the same view (one-element arrays when the sign does not need them):
-    # entry j's binary internal node, wide_node[4k + j] (-1 for a single triangle or none), whose moments stand
-    # for it, and the binary nodes between node k and its entries, wide_inner[2k + side] (-1 where that side
-    # of node k is a single triangle), whose moments stand for that side's entries together.
-    wide_node: wp.array(dtype=wp.int32)
-    wide_inner: wp.array(dtype=wp.int32)
 
 
 class Bvh:
@@ -144,7 +138,7 @@ class Bvh:
         self.slot_count = b.array("bvh.slot_count", slots, wp.int32)
         self.triangles = b.array("bvh.triangles", 3 * n, wp.vec4)
         self.node_moments = b.array("bvh.node_moments", 4 * max(n - 1, 1) if with_moments else 1, wp.vec4)
-        self.wide = WideTree(n, b, with_moments=with_moments)
+        self.wide = WideTree(n, b)
         self._buffers = b
         self._cuts: dict[int, wp.array] = {}
 
@@ -221,7 +215,6 @@ class Bvh:
         v.leaf_key = self.sort_keys
         v.node_moments = self.node_moments
         v.wide_planes, v.wide_child = self.wide.planes, self.wide.child
-        v.wide_node, v.wide_inner = self.wide.node, self.wide.inner
         return v
 
     def leaf_faces(self) -> np.ndarray:
@@ -240,16 +233,13 @@ class WideTree:
     triangle, which it is while LEAF_SIZE is 1.
     """
 
-    def __init__(self, face_count: int, buffers: DeviceBuffers, *, with_moments: bool):
+    def __init__(self, face_count: int, buffers: DeviceBuffers):
         self.internal_count = face_count - 1
         self.capacity = (2 * face_count - 1) // 3 + 1
         self.device = buffers.device
-        self.with_moments = with_moments
         self.slot = buffers.array("bvh.wide.slot", 4 * self.capacity, wp.int32)
         self.child = buffers.array("bvh.wide.child", 4 * self.capacity, wp.int32)
         self.planes = buffers.array("bvh.wide.planes", 6 * self.capacity, wp.vec4)
-        self.node = buffers.array("bvh.wide.node", 4 * self.capacity if with_moments else 1, wp.int32)
-        self.inner = buffers.array("bvh.wide.inner", 2 * self.capacity if with_moments else 1, wp.int32)
 
     def link(self, slot_child: wp.array, slot_count: wp.array, slot_first: wp.array, parent_slot: wp.array,
              even: wp.array, rank: wp.array) -> None:
@@ -258,13 +248,10 @@ class WideTree:
         internal = self.internal_count
         self.slot.fill_(-1)
         self.child.fill_(NO_CHILD)
-        self.node.fill_(-1)
-        self.inner.fill_(-1)
         wp.launch(_even_depth, dim=internal, inputs=[parent_slot], outputs=[even], device=self.device)
         wp.utils.array_scan(even, rank, inclusive=False)
-        wp.launch(_link_wide, dim=internal, inputs=[even, rank, slot_child, slot_count, slot_first,
-                                                    1 if self.with_moments else 0],
-                  outputs=[self.slot, self.child, self.node, self.inner], device=self.device)
+        wp.launch(_link_wide, dim=internal, inputs=[even, rank, slot_child, slot_count, slot_first],
+                  outputs=[self.slot, self.child], device=self.device)
 
     def fill(self, slot_lower: wp.array, slot_upper: wp.array) -> None:
         """Copy the refitted binary boxes into the planes."""
@@ -286,14 +273,12 @@ def _even_depth(parent_slot: wp.array(dtype=wp.int32), even: wp.array(dtype=wp.i
 
 @wp.kernel(enable_backward=False)
 def _link_wide(even: wp.array(dtype=wp.int32), rank: wp.array(dtype=wp.int32), slot_child: wp.array(dtype=wp.int32),
-               slot_count: wp.array(dtype=wp.int32), slot_first: wp.array(dtype=wp.int32), with_moments: int,
-               wide_slot: wp.array(dtype=wp.int32), wide_child: wp.array(dtype=wp.int32),
-               wide_node: wp.array(dtype=wp.int32), wide_inner: wp.array(dtype=wp.int32)):
+               slot_count: wp.array(dtype=wp.int32), slot_first: wp.array(dtype=wp.int32),
+               wide_slot: wp.array(dtype=wp.int32), wide_child: wp.array(dtype=wp.int32)):
     i = wp.tid()
     if even[i] == 0:
         return
-    k = rank[i]
-    base = 4 * k
+    base = 4 * rank[i]
     entry = int(0)
     for side in range(2):
         slot = 2 * i + side
@@ -303,8 +288,6 @@ def _link_wide(even: wp.array(dtype=wp.int32), rank: wp.array(dtype=wp.int32), s
             entry += 1
         else:
             inner = slot_child[slot]
-            if with_moments != 0:
-                wide_inner[2 * k + side] = inner
             for inner_side in range(2):
                 grand = 2 * inner + inner_side
                 wide_slot[base + entry] = grand
@@ -312,8 +295,6 @@ def _link_wide(even: wp.array(dtype=wp.int32), rank: wp.array(dtype=wp.int32), s
                     wide_child[base + entry] = -1 - slot_first[grand]
                 else:
                     wide_child[base + entry] = rank[slot_child[grand]]
-                    if with_moments != 0:
-                        wide_node[base + entry] = slot_child[grand]
                 entry += 1
 
 
@@ -674,85 +655,48 @@ def _winding_number_function(careful: bool):
     and none is left cancelled; otherwise float32 throughout, whose registers the corners' winding kernel
     can afford."""
 
-    def leaf_term(bvh: BvhView, p: wp.vec3, leaf: int):
-        """A single triangle's share of 4 pi w: its dipole far away, else its solid angle."""
-        a, b, c = leaf_triangle(bvh, leaf)
-        centre_radius, normal_area = leaf_moments(a, b, c)
-        offset = _xyz(centre_radius) - p
-        dist = wp.length(offset)
-        if dist > _FAR_FIELD * centre_radius[3]:
-            return wp.dot(_xyz(normal_area), offset / dist) / (dist * dist), False
-        if wp.static(careful):
-            return solid_angle_careful(p, a, b, c), False
-        return solid_angle_checked(p, a, b, c)
-
-    leaf_term.__name__ = leaf_term.__qualname__ = "leaf_term_careful" if careful else "leaf_term"
-    leaf_term = wp.func(leaf_term)
-
     def winding_number(bvh: BvhView, p: wp.vec3):
-        """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018).
-
-        The walk goes over the 4-wide view, but takes its expansions at the binary tree's nodes, exactly where a
-        walk down the binary tree would: a side of a 4-wide node whose binary node (`wide_inner`) is far stands
-        for its entries; otherwise each entry is taken far or near by its own moments. Every load a visit needs
-        is issued before any of its tests, so that it waits on memory once for two levels."""
+        """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018)."""
         total = float(0.0)
         cancelled = bool(False)
         if bvh.internal_count == 0:
-            total, cancelled = leaf_term(bvh, p, 0)  # a single triangle, and no tree
+            a, b, c = leaf_triangle(bvh, 0)  # a single triangle, and no tree
+            if wp.static(careful):
+                total = solid_angle_careful(p, a, b, c)
+            else:
+                total, cancelled = solid_angle_checked(p, a, b, c)
             return total * _INV_FOUR_PI, cancelled
-        nodes = wide_stack_int()
+        nodes = stack_int()
         nodes[0] = 0
-        top = int(1)
-        while top > 0:
-            top -= 1
-            k = nodes[top]
-            inner_0 = bvh.wide_inner[2 * k]
-            inner_1 = bvh.wide_inner[2 * k + 1]
-            child = wp.vec4i()
-            node = wp.vec4i()
-            for j in range(4):
-                child[j] = bvh.wide_child[4 * k + j]
-                node[j] = bvh.wide_node[4 * k + j]
-            # every entry's and side's centre and radius, read at once (node 0's where there is none)
-            side_0 = load_vec4(bvh.node_moments, 4 * wp.max(inner_0, 0))
-            side_1 = load_vec4(bvh.node_moments, 4 * wp.max(inner_1, 0))
-            centre_radius = wp.mat44()
-            for j in range(4):
-                row = load_vec4(bvh.node_moments, 4 * wp.max(node[j], 0))
-                for c in range(4):
-                    centre_radius[j, c] = row[c]
-            # a far side's binary node stands for its entries, as it would in the binary walk
-            open_0 = True
-            if inner_0 >= 0:
-                offset = _xyz(side_0) - p
-                dist = wp.length(offset)
-                if dist > _FAR_FIELD * side_0[3]:
-                    total += _far_field(bvh, inner_0, offset / dist, dist)
-                    open_0 = False
-            open_1 = True
-            if inner_1 >= 0:
-                offset = _xyz(side_1) - p
-                dist = wp.length(offset)
-                if dist > _FAR_FIELD * side_1[3]:
-                    total += _far_field(bvh, inner_1, offset / dist, dist)
-                    open_1 = False
-            # side 0 holds the first entry, or the first two where it is a binary node
-            first_of_side_1 = wp.where(inner_0 >= 0, 2, 1)
-            for j in range(4):
-                if child[j] != NO_CHILD and wp.where(j < first_of_side_1, open_0, open_1):
-                    if child[j] < 0:
-                        term, near_cancelled = leaf_term(bvh, p, -1 - child[j])
-                        total += term
-                        cancelled = cancelled or near_cancelled
+        count = int(1)
+        while count > 0:
+            count -= 1
+            slot = 2 * nodes[count]
+            for side in range(2):
+                child = bvh.slot_child[slot + side]
+                if child >= bvh.internal_count:  # a single triangle: its dipole far away, else its solid angle
+                    leaf = child - bvh.internal_count
+                    a, b, c = leaf_triangle(bvh, leaf)
+                    centre_radius, normal_area = leaf_moments(a, b, c)
+                    offset = _xyz(centre_radius) - p
+                    dist = wp.length(offset)
+                    if dist > _FAR_FIELD * centre_radius[3]:
+                        total += wp.dot(_xyz(normal_area), offset / dist) / (dist * dist)
+                    elif wp.static(careful):
+                        total += solid_angle_careful(p, a, b, c)
                     else:
-                        offset = wp.vec3(centre_radius[j, 0], centre_radius[j, 1], centre_radius[j, 2]) - p
-                        dist = wp.length(offset)
-                        if dist > _FAR_FIELD * centre_radius[j, 3]:
-                            total += _far_field(bvh, node[j], offset / dist, dist)
-                        else:
-                            nodes[top] = child[j]
-                            top += 1
+                        angle, near_cancelled = solid_angle_checked(p, a, b, c)
+                        total += angle
+                        cancelled = cancelled or near_cancelled
+                else:
+                    centre_radius = load_vec4(bvh.node_moments, 4 * child)
+                    offset = _xyz(centre_radius) - p
+                    dist = wp.length(offset)
+                    if dist > _FAR_FIELD * centre_radius[3]:
+                        total += _far_field(bvh, child, offset / dist, dist)
+                    else:
+                        nodes[count] = child
+                        count += 1
         return total * _INV_FOUR_PI, cancelled
 
     winding_number.__name__ = winding_number.__qualname__ = "winding_number_careful" if careful else "winding_number"
