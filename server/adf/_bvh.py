@@ -11,10 +11,10 @@ most LEAF_SIZE triangles is searched directly over its contiguous triangles (the
 triangle per leaf, as the octree derivation needs; the searches just stop early). Triangles are packed
 three vec4 per leaf, for the same reason, and the winding-number moments four vec4 per internal node.
 
-The corner searches walk a 4-wide view of the same tree (`WideTree`): every other level folded away, so a
-node's children are its binary node's grandchildren (or a child itself where that is a single triangle). A
-visit reads the four boxes as six 16-byte planes (the lower x of all four, then y, ..., then the upper z) and
-tests them together; a walk takes about half the dependent steps of the binary one. On the H100 the bunny's
+The corner searches and the queries walk a 4-wide view of the same tree (`WideTree`): every other level folded
+away, so a node's children are its binary node's grandchildren (or a child itself where that is a single
+triangle). A visit reads the four boxes as six 16-byte planes (the lower x of all four, then y, ..., then the
+upper z) and tests them together; a walk takes about half the dependent steps of the binary one. On the H100 the bunny's
 corner searches took 1.02 against 1.35 ms (2026-11-28, `bench/probes/probe_bvh4.py`), with the same answers.
 
 The winding numbers (Barill et al. 2018) replace a node far from the point by the first two terms of its
@@ -110,6 +110,7 @@ class BvhView:
     # (>= 0), a single triangle's leaf (-1 - leaf), or NO_CHILD. Node 0 is the root.
     wide_planes: wp.array(dtype=wp.vec4)
     wide_child: wp.array(dtype=wp.int32)
+    wide_slot: wp.array(dtype=wp.int32)  # the binary slot each entry's box is copied from (-1 for none)
 
 
 class Bvh:
@@ -214,7 +215,7 @@ class Bvh:
         v.face_leaf = self.face_leaf
         v.leaf_key = self.sort_keys
         v.node_moments = self.node_moments
-        v.wide_planes, v.wide_child = self.wide.planes, self.wide.child
+        v.wide_planes, v.wide_child, v.wide_slot = self.wide.planes, self.wide.child, self.wide.slot
         return v
 
     def leaf_faces(self) -> np.ndarray:
@@ -415,121 +416,84 @@ def leaf_distance_held_to_box_sq(bvh: BvhView, leaf: int, p: wp.vec3) -> float:
     return wp.max(d_sq, box_distance_sq(p, wp.min(wp.min(a, b), c), wp.max(wp.max(a, b), c)))
 
 
-def _nearest_searches(past_tied_boxes: bool):
-    """The depth-first nearest-leaf search, built two ways: (nearest_in_range, nearest_in_subtree,
-    nearest_leaf_within).
+@wp.func
+def _nearest_in_range(bvh: BvhView, p: wp.vec3, first: int, count: int, best_leaf: int, best_sq: float):
+    for leaf in range(first, first + count):
+        d_sq = leaf_distance_sq(bvh, leaf, p)
+        if beats(d_sq, leaf, best_sq, best_leaf):
+            best_sq = d_sq
+            best_leaf = leaf
+    return best_leaf, best_sq
 
-    With `past_tied_boxes` a box exactly as far as the best so far is passed over when its first leaf comes
-    after the best's, since none of its leaves can win the tie (`beats`). Seen from far enough (1e8 sizes
-    away) every face ties in float32, and without it a search visits every face: 0.8 ms a point for 20K faces
-    on the CPU, 3 us with it (fifteenth outside check). Passing over a tied box is exact only if no leaf under
-    it is valued below the box, so this search values a leaf by `leaf_distance_held_to_box_sq`; by the plain
-    triangle distance, which beyond about 30 domain sides can round an ulp or two below its box's, 403 of 4,000
-    searches off a box named another face than the least (review, sixteenth stop). The corner searches, which
-    never meet such ties in bulk and never look from that far, take the search without either: the extra test
-    made them 15% slower on the H100 (2026-11-23); the queries take the search with both.
+
+@wp.func
+def nearest_in_subtree(bvh: BvhView, p: wp.vec3, root: int, best_leaf: int, best_sq: float, budget: int):
+    """Nearest leaf under internal node `root` that beats (best_sq, best_leaf) (see `beats`), in at most
+    `budget` node visits: (best_leaf, best_sq, finished). An unfinished search still returns a valid upper
+    bound.
+
+    The paper's Algorithm 2: depth-first, nearer child first, small subtrees searched at once, pruning
+    every box farther than the best so far (a box exactly as far may hold a tie of lower index). A good
+    starting bound (coherence) prunes early.
     """
+    nodes = stack_int()
+    bounds = stack_float()
+    nodes[0] = root
+    bounds[0] = 0.0
+    count = int(1)
+    visits = int(0)
+    while count > 0:
+        count -= 1
+        if bounds[count] > best_sq:
+            continue
+        if visits == budget:
+            return best_leaf, best_sq, False
+        visits += 1
+        slot = 2 * nodes[count]
+        lower_0 = load_vec4(bvh.slot_lower, slot)
+        lower_1 = load_vec4(bvh.slot_lower, slot + 1)
+        d_0 = box_distance_sq(p, _xyz(lower_0), _xyz(load_vec4(bvh.slot_upper, slot)))
+        d_1 = box_distance_sq(p, _xyz(lower_1), _xyz(load_vec4(bvh.slot_upper, slot + 1)))
+        near = slot
+        far = slot + 1
+        d_near = d_0
+        d_far = d_1
+        near_small = lower_0[3] <= float(LEAF_SIZE)
+        far_small = lower_1[3] <= float(LEAF_SIZE)
+        if d_1 < d_0:
+            near = slot + 1
+            far = slot
+            d_near = d_1
+            d_far = d_0
+            near_small = lower_1[3] <= float(LEAF_SIZE)
+            far_small = lower_0[3] <= float(LEAF_SIZE)
+        # small subtrees first, the nearer one first, so the bound tightens before the far test
+        if near_small and d_near <= best_sq:
+            best_leaf, best_sq = _nearest_in_range(bvh, p, bvh.slot_first[near], bvh.slot_count[near], best_leaf,
+                                                   best_sq)
+        if far_small and d_far <= best_sq:
+            best_leaf, best_sq = _nearest_in_range(bvh, p, bvh.slot_first[far], bvh.slot_count[far], best_leaf,
+                                                   best_sq)
+        if not far_small and d_far <= best_sq:
+            nodes[count] = bvh.slot_child[far]
+            bounds[count] = d_far
+            count += 1
+        if not near_small and d_near <= best_sq:
+            nodes[count] = bvh.slot_child[near]
+            bounds[count] = d_near
+            count += 1
+    return best_leaf, best_sq, True
 
-    def leaf_sq(bvh: BvhView, leaf: int, p: wp.vec3) -> float:
-        if wp.static(past_tied_boxes):
-            return leaf_distance_held_to_box_sq(bvh, leaf, p)
-        return leaf_distance_sq(bvh, leaf, p)
 
-    leaf_sq = wp.func(leaf_sq, module="unique")
-
-    def nearest_in_range(bvh: BvhView, p: wp.vec3, first: int, count: int, best_leaf: int, best_sq: float):
-        for leaf in range(first, first + count):
-            d_sq = leaf_sq(bvh, leaf, p)
-            if beats(d_sq, leaf, best_sq, best_leaf):
-                best_sq = d_sq
-                best_leaf = leaf
-        return best_leaf, best_sq
-
-    _nearest_in_range = wp.func(nearest_in_range, module="unique")
-
-    def may_hold(bvh: BvhView, box_sq: float, slot: int, best_sq: float, best_leaf: int) -> bool:
-        """Whether the child in `slot`, whose box lies box_sq from the point, may hold a leaf that beats the
-        best: a box nearer than it, or exactly as near (with a leaf of lower index under it)."""
-        if wp.static(past_tied_boxes):
-            if box_sq == best_sq:
-                return bvh.slot_first[slot] < best_leaf
-        return box_sq <= best_sq
-
-    may_hold = wp.func(may_hold, module="unique")
-
-    def nearest_in_subtree(bvh: BvhView, p: wp.vec3, root: int, best_leaf: int, best_sq: float, budget: int):
-        """Nearest leaf under internal node `root` that beats (best_sq, best_leaf) (see `beats`), in at most
-        `budget` node visits: (best_leaf, best_sq, finished). An unfinished search still returns a valid upper
-        bound.
-
-        The paper's Algorithm 2: depth-first, nearer child first, small subtrees searched at once, pruning
-        every box farther than the best so far (a box exactly as far may hold a tie of lower index). A good
-        starting bound (coherence) prunes early.
-        """
-        nodes = stack_int()
-        bounds = stack_float()
-        nodes[0] = root
-        bounds[0] = 0.0
-        count = int(1)
-        visits = int(0)
-        while count > 0:
-            count -= 1
-            if not may_hold(bvh, bounds[count], 2 * nodes[count], best_sq, best_leaf):
-                continue
-            if visits == budget:
-                return best_leaf, best_sq, False
-            visits += 1
-            slot = 2 * nodes[count]
-            lower_0 = load_vec4(bvh.slot_lower, slot)
-            lower_1 = load_vec4(bvh.slot_lower, slot + 1)
-            d_0 = box_distance_sq(p, _xyz(lower_0), _xyz(load_vec4(bvh.slot_upper, slot)))
-            d_1 = box_distance_sq(p, _xyz(lower_1), _xyz(load_vec4(bvh.slot_upper, slot + 1)))
-            near = slot
-            far = slot + 1
-            d_near = d_0
-            d_far = d_1
-            near_small = lower_0[3] <= float(LEAF_SIZE)
-            far_small = lower_1[3] <= float(LEAF_SIZE)
-            if d_1 < d_0:
-                near = slot + 1
-                far = slot
-                d_near = d_1
-                d_far = d_0
-                near_small = lower_1[3] <= float(LEAF_SIZE)
-                far_small = lower_0[3] <= float(LEAF_SIZE)
-            # small subtrees first, the nearer one first, so the bound tightens before the far test
-            if near_small and may_hold(bvh, d_near, near, best_sq, best_leaf):
-                best_leaf, best_sq = _nearest_in_range(bvh, p, bvh.slot_first[near], bvh.slot_count[near], best_leaf,
-                                                       best_sq)
-            if far_small and may_hold(bvh, d_far, far, best_sq, best_leaf):
-                best_leaf, best_sq = _nearest_in_range(bvh, p, bvh.slot_first[far], bvh.slot_count[far], best_leaf,
-                                                       best_sq)
-            if not far_small and may_hold(bvh, d_far, far, best_sq, best_leaf):
-                nodes[count] = bvh.slot_child[far]
-                bounds[count] = d_far
-                count += 1
-            if not near_small and may_hold(bvh, d_near, near, best_sq, best_leaf):
-                nodes[count] = bvh.slot_child[near]
-                bounds[count] = d_near
-                count += 1
+@wp.func
+def nearest_leaf_within(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float, budget: int):
+    """Nearest leaf to p of those that beat (best_sq, best_leaf) (see `beats`), in at most `budget` node
+    visits: (best_leaf, best_sq, finished); (best_leaf, best_sq) stand if there is none."""
+    if bvh.internal_count == 0:
+        best_leaf, best_sq = _nearest_in_range(bvh, p, 0, 1, best_leaf, best_sq)
         return best_leaf, best_sq, True
-
-    nearest_in_subtree = wp.func(nearest_in_subtree, module="unique")
-
-    def nearest_leaf_within(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float, budget: int):
-        """Nearest leaf to p of those that beat (best_sq, best_leaf) (see `beats`), in at most `budget` node
-        visits: (best_leaf, best_sq, finished); (best_leaf, best_sq) stand if there is none."""
-        if bvh.internal_count == 0:
-            best_leaf, best_sq = _nearest_in_range(bvh, p, 0, 1, best_leaf, best_sq)
-            return best_leaf, best_sq, True
-        best_leaf, best_sq, finished = nearest_in_subtree(bvh, p, 0, best_leaf, best_sq, budget)
-        return best_leaf, best_sq, finished
-
-    return _nearest_in_range, nearest_in_subtree, wp.func(nearest_leaf_within, module="unique")
-
-
-_nearest_in_range, nearest_in_subtree, nearest_leaf_within = _nearest_searches(past_tied_boxes=False)
-_, _, nearest_leaf_past_ties = _nearest_searches(past_tied_boxes=True)
+    best_leaf, best_sq, finished = nearest_in_subtree(bvh, p, 0, best_leaf, best_sq, budget)
+    return best_leaf, best_sq, finished
 
 
 @wp.func
@@ -551,58 +515,107 @@ def _plane_gaps(p: float, lower: wp.vec4, upper: wp.vec4) -> wp.vec4:
                    wp.max(wp.max(lower[2] - p, p - upper[2]), 0.0), wp.max(wp.max(lower[3] - p, p - upper[3]), 0.0))
 
 
-@wp.func
-def nearest_leaf_wide(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float, budget: int):
-    """Nearest leaf to p of those that beat (best_sq, best_leaf) (see `beats`), over the 4-wide view, in at
-    most `budget` binary node visits (a 4-wide visit counts two): (best_leaf, best_sq, finished), the answers of
-    `nearest_leaf_within`: both open every box no farther than the best so far, so both find the least
-    (distance, leaf), whatever the order they walk in. Triangles are tested first, then the nodes pushed
-    farthest first, so that the nearest is walked next."""
-    if bvh.internal_count == 0:
-        best_leaf, best_sq = _nearest_in_range(bvh, p, 0, 1, best_leaf, best_sq)
-        return best_leaf, best_sq, True
-    nodes = wide_stack_int()
-    bounds = wide_stack_float()
-    nodes[0] = 0
-    bounds[0] = 0.0
-    top = int(1)
-    visits = int(0)
-    while top > 0:
-        top -= 1
-        if bounds[top] > best_sq:
-            continue
-        if visits >= budget:
-            return best_leaf, best_sq, False
-        visits += 2
-        node = nodes[top]
-        gap_x = _plane_gaps(p[0], load_vec4(bvh.wide_planes, 6 * node), load_vec4(bvh.wide_planes, 6 * node + 3))
-        gap_y = _plane_gaps(p[1], load_vec4(bvh.wide_planes, 6 * node + 1), load_vec4(bvh.wide_planes, 6 * node + 4))
-        gap_z = _plane_gaps(p[2], load_vec4(bvh.wide_planes, 6 * node + 2), load_vec4(bvh.wide_planes, 6 * node + 5))
-        d = wp.vec4()
-        child = wp.vec4i()
-        for j in range(4):
-            d[j] = gap_x[j] * gap_x[j] + gap_y[j] * gap_y[j] + gap_z[j] * gap_z[j]
-            child[j] = bvh.wide_child[4 * node + j]
-        for j in range(4):
-            if child[j] < 0 and d[j] <= best_sq:
-                leaf = -1 - child[j]
-                d_sq = leaf_distance_sq(bvh, leaf, p)
-                if beats(d_sq, leaf, best_sq, best_leaf):
-                    best_sq = d_sq
-                    best_leaf = leaf
-        for _push in range(4):
-            far = int(-1)
-            far_d = float(-1.0)
+def _wide_searches(past_tied_boxes: bool):
+    """The nearest-leaf search over the 4-wide view, built two ways. With `past_tied_boxes` a box exactly as far
+    as the best so far is passed over when its first leaf comes after the best's, since none of its leaves can win
+    the tie (`beats`). Seen from far enough (1e8 sizes away) every face ties in float32, and without it a search
+    visits every face: 0.8 ms a point for 20K faces on the CPU, 3 us with it (fifteenth outside check). Passing
+    over a tied box is exact only if no leaf under it is valued below the box, so this search values a leaf by
+    `leaf_distance_held_to_box_sq`; by the plain triangle distance, which beyond about 30 domain sides can round an
+    ulp or two below its box's, 403 of 4,000 searches off a box named another face than the least (review,
+    sixteenth stop). The planes give a box the distance `box_distance_sq` gives it, in the same order of
+    operations, so that holds here too. The corner searches, which never meet such ties in bulk and never look
+    from that far, take the search without either: the extra test made the binary walk 15% slower on the H100
+    (2026-11-23); the queries take the search with both (on the 4-wide view since 2026-11-28).
+    """
+
+    def leaf_sq(bvh: BvhView, leaf: int, p: wp.vec3) -> float:
+        if wp.static(past_tied_boxes):
+            return leaf_distance_held_to_box_sq(bvh, leaf, p)
+        return leaf_distance_sq(bvh, leaf, p)
+
+    leaf_sq = wp.func(leaf_sq, module="unique")
+
+    def may_hold(bvh: BvhView, box_sq: float, node: int, j: int, entry: int, best_sq: float, best_leaf: int) -> bool:
+        """Whether entry j of 4-wide node `node`, whose box lies box_sq from the point, may hold a leaf that beats
+        the best: a box nearer than it, or exactly as near (with a leaf of lower index under it)."""
+        if wp.static(past_tied_boxes):
+            if box_sq == best_sq:
+                first = -1 - entry
+                if entry >= 0:
+                    first = bvh.slot_first[bvh.wide_slot[4 * node + j]]
+                return first < best_leaf
+        return box_sq <= best_sq
+
+    may_hold = wp.func(may_hold, module="unique")
+
+    def nearest_leaf_wide(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float, budget: int):
+        """Nearest leaf to p of those that beat (best_sq, best_leaf) (see `beats`), over the 4-wide view, in at
+        most `budget` binary node visits (a 4-wide visit counts two): (best_leaf, best_sq, finished), the answers
+        of the binary search built the same way: both open every box that may hold a better leaf, so both find
+        the least (value, leaf), whatever the order they walk in. Triangles are tested first, then the nodes
+        pushed farthest first, so that the nearest is walked next. A node pushed before the best came to tie
+        with its box is still opened (its entries are tested against the tie), which only costs a visit."""
+        if bvh.internal_count == 0:
+            d_sq = leaf_sq(bvh, 0, p)
+            if beats(d_sq, 0, best_sq, best_leaf):
+                return 0, d_sq, True
+            return best_leaf, best_sq, True
+        nodes = wide_stack_int()
+        bounds = wide_stack_float()
+        nodes[0] = 0
+        bounds[0] = 0.0
+        top = int(1)
+        visits = int(0)
+        while top > 0:
+            top -= 1
+            if bounds[top] > best_sq:
+                continue
+            if visits >= budget:
+                return best_leaf, best_sq, False
+            visits += 2
+            node = nodes[top]
+            gap_x = _plane_gaps(p[0], load_vec4(bvh.wide_planes, 6 * node), load_vec4(bvh.wide_planes, 6 * node + 3))
+            gap_y = _plane_gaps(p[1], load_vec4(bvh.wide_planes, 6 * node + 1), load_vec4(bvh.wide_planes, 6 * node + 4))
+            gap_z = _plane_gaps(p[2], load_vec4(bvh.wide_planes, 6 * node + 2), load_vec4(bvh.wide_planes, 6 * node + 5))
+            d = wp.vec4()
+            child = wp.vec4i()
             for j in range(4):
-                if child[j] >= 0 and child[j] != NO_CHILD and d[j] <= best_sq and d[j] > far_d:
-                    far = j
-                    far_d = d[j]
-            if far >= 0:
-                nodes[top] = child[far]
-                bounds[top] = far_d
-                top += 1
-                child[far] = NO_CHILD
-    return best_leaf, best_sq, True
+                d[j] = gap_x[j] * gap_x[j] + gap_y[j] * gap_y[j] + gap_z[j] * gap_z[j]
+                child[j] = bvh.wide_child[4 * node + j]
+            for j in range(4):
+                if child[j] < 0 and may_hold(bvh, d[j], node, j, child[j], best_sq, best_leaf):
+                    leaf = -1 - child[j]
+                    d_sq = leaf_sq(bvh, leaf, p)
+                    if beats(d_sq, leaf, best_sq, best_leaf):
+                        best_sq = d_sq
+                        best_leaf = leaf
+            for j in range(4):
+                if child[j] >= 0 and child[j] != NO_CHILD:
+                    if not may_hold(bvh, d[j], node, j, child[j], best_sq, best_leaf):
+                        child[j] = NO_CHILD
+            for _push in range(4):
+                far = int(-1)
+                far_d = float(-1.0)
+                for j in range(4):
+                    if child[j] >= 0 and child[j] != NO_CHILD and d[j] > far_d:
+                        far = j
+                        far_d = d[j]
+                if far >= 0:
+                    nodes[top] = child[far]
+                    bounds[top] = far_d
+                    top += 1
+                    child[far] = NO_CHILD
+        return best_leaf, best_sq, True
+
+    nearest_leaf_wide.__name__ = nearest_leaf_wide.__qualname__ = (
+        "nearest_leaf_wide_past_ties" if past_tied_boxes else "nearest_leaf_wide")
+    return wp.func(nearest_leaf_wide, module="unique")
+
+
+# the corner searches' and the queries' (see `_wide_searches` for why they differ)
+nearest_leaf_wide = _wide_searches(past_tied_boxes=False)
+nearest_leaf_past_ties = _wide_searches(past_tied_boxes=True)
 
 
 @wp.kernel(enable_backward=False)

@@ -423,7 +423,7 @@ def _banded_search(nearest_leaf, leaf_distance_sq):
     return wp.func(nearest_with_band, module="unique")
 
 
-# the corner searches' (over the 4-wide view) and the queries' (which pass over tied boxes: see `_nearest_searches`)
+# the corner searches' and the queries' (which pass over tied boxes: see `_wide_searches`), both over the 4-wide view
 _nearest_with_band = _banded_search(nearest_leaf_wide, leaf_distance_sq)
 _nearest_past_ties = _banded_search(nearest_leaf_past_ties, leaf_distance_held_to_box_sq)
 
