@@ -223,11 +223,13 @@ class Bvh:
 
 
 class WideTree:
-    """The 4-wide view of a Bvh's binary tree, which the corner searches walk (see the module's docstring).
+    """The 4-wide view of a Bvh's binary tree, which the corner searches and the queries walk (see the module's
+    docstring).
 
     Its nodes are the binary internal nodes at even depth, numbered in the binary tree's order. Node k's entry j
     is one of the binary slots two levels down (or one, where the slot holds a single triangle): `slot` keeps
-    which, so a refit copies the binary tree's boxes into the planes. Every even-depth node but the root has a
+    which, so a refit copies the binary tree's boxes into the planes, and the queries' search reads a tied
+    entry's first leaf there. Every even-depth node but the root has a
     parent at odd depth, which has at most two children, so with E even-depth and O odd-depth internal nodes,
     E <= 1 + 2 O and E + O = n - 1 give E <= (2n - 1) / 3: the arrays are sized for that (the count is not read
     back at a build) and hold NO_CHILD past it. The view takes a child of at most LEAF_SIZE triangles as a single
