@@ -118,8 +118,8 @@ def analyse_topology(faces: np.ndarray, vertices: np.ndarray) -> Topology:
     lo, hi = np.minimum(start, end), np.maximum(start, end)
     keys = lo * vertex_count + hi
     usable = np.repeat(~repeated[:, None], 3, axis=1)
-    # edges are the distinct keys, numbered in key order
-    _, inverse, counts = np.unique(keys[usable], return_inverse=True, return_counts=True)
+    # edges are the distinct keys, numbered in key order; `order` lists the usable slots by edge, in slot order
+    order, inverse, counts = _groups(keys[usable])
     edge_count = len(counts)
     face_edge = np.full((m, 3), edge_count, dtype=np.int32)
     face_edge[usable] = inverse.astype(np.int32)
@@ -128,14 +128,13 @@ def analyse_topology(faces: np.ndarray, vertices: np.ndarray) -> Topology:
     orientation_sum = np.bincount(inverse, weights=direction, minlength=edge_count)
     two = counts == 2
     face_of_slot = np.repeat(np.arange(m), 3).reshape(m, 3)[usable]
-    order = _stable_order(inverse, edge_count)
     edge_face_start = np.zeros(edge_count + 2, dtype=np.int32)
     edge_face_start[1 : edge_count + 1] = np.cumsum(counts)
     edge_face_start[edge_count + 1] = edge_face_start[edge_count]  # the null edge has no faces
-    corner_fan, fan_count = _fans(f, usable, inverse[order], order, vertex_count)
-    fan_order = _stable_order(corner_fan, fan_count)
+    corner_fan, fan_order, fan_sizes = _fans(f, usable, inverse[order], order, vertex_count)
+    fan_count = len(fan_sizes)
     fan_corner_start = np.zeros(fan_count + 1, dtype=np.int32)
-    fan_corner_start[1:] = np.cumsum(np.bincount(corner_fan, minlength=fan_count))
+    fan_corner_start[1:] = np.cumsum(fan_sizes)
     return Topology(
         welded_faces=f.astype(np.int32),
         welded_count=vertex_count,
@@ -173,10 +172,11 @@ def _seam_pairs(faces: np.ndarray, corner_fan: np.ndarray, fan_order: np.ndarray
 
 
 def _fans(f: np.ndarray, usable: np.ndarray, sorted_edge: np.ndarray, order: np.ndarray,
-          vertex_count: int) -> tuple[np.ndarray, int]:
-    """(fan of each corner (3M,), fan count): corners at one welded vertex joined through faces that share
-    an edge there. `order` sorts the usable edge slots (row-major) by edge id, `sorted_edge` is their edge
-    ids in that order. Fans are numbered by their first corner's welded vertex, then that corner."""
+          vertex_count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(fan of each corner (3M,), the corners by fan in corner order, each fan's corner count): corners at one
+    welded vertex joined through faces that share an edge there. `order` sorts the usable edge slots
+    (row-major) by edge id, `sorted_edge` is their edge ids in that order. Fans are numbered by their first
+    corner's welded vertex, then that corner."""
     m = len(f)
     slot = np.flatnonzero(usable.reshape(-1))[order]  # 3 * face + k of each usable slot, by edge
     same = sorted_edge[1:] == sorted_edge[:-1]  # neighbours in that order share their edge
@@ -192,17 +192,23 @@ def _fans(f: np.ndarray, usable: np.ndarray, sorted_edge: np.ndarray, order: np.
     # number the fans by (welded vertex, first corner), so a mesh whose vertices are all manifold numbers
     # them as its welded vertices
     key = welded[root] * (3 * m) + root
-    _, fan = np.unique(key, return_inverse=True)
-    return fan.reshape(-1), int(fan.max()) + 1 if m else 0
+    fan_order, fan, sizes = _groups(key)
+    return fan, fan_order, sizes
 
 
-def _stable_order(values: np.ndarray, bound: int) -> np.ndarray:
-    """np.argsort(values, kind="stable") for integers in [0, bound): a quicksort of value * n + index where
-    that fits in int64 (4 to 5 times faster than numpy's stable sort on 200K values)."""
-    n = len(values)
-    if bound * max(n, 1) < 2**62:
-        return np.argsort(values.astype(np.int64) * n + np.arange(n))
-    return np.argsort(values, kind="stable")
+def _groups(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What np.unique(values, return_inverse=True, return_counts=True) gives as (inverse, counts), with the
+    stable order that sorts the values, from that one sort: (order, inverse, counts). numpy's stable sort of
+    integers is as fast as its quicksort on shuffled values and far faster on the nearly sorted ones that
+    meshes' edge keys often are (numpy 2.4: 0.5 against 11 ms for 208K)."""
+    order = np.argsort(values, kind="stable")
+    if len(values) == 0:
+        return order, np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    ordered = values[order]
+    starts = np.flatnonzero(np.concatenate([[True], ordered[1:] != ordered[:-1]]))
+    inverse = np.empty(len(values), dtype=np.int64)
+    inverse[order] = np.cumsum(np.concatenate([[0], ordered[1:] != ordered[:-1]]))
+    return order, inverse, np.diff(np.append(starts, len(values)))
 
 
 def _weld(vertices: np.ndarray) -> tuple[np.ndarray, int]:
@@ -260,7 +266,7 @@ def spread_sample(label: np.ndarray, limit: int) -> np.ndarray:
     count = len(label)
     if count <= limit:
         return np.arange(count, dtype=np.int32)
-    order = _stable_order(label, int(label.max()) + 1)
+    order = np.argsort(label, kind="stable")
     sizes = np.bincount(label)
     starts = np.cumsum(sizes) - sizes
     share = np.maximum(np.minimum(sizes, 8), (limit * sizes) // count)
