@@ -131,7 +131,7 @@ def analyse_topology(faces: np.ndarray, vertices: np.ndarray) -> Topology:
     edge_face_start = np.zeros(edge_count + 2, dtype=np.int32)
     edge_face_start[1 : edge_count + 1] = np.cumsum(counts)
     edge_face_start[edge_count + 1] = edge_face_start[edge_count]  # the null edge has no faces
-    corner_fan, fan_order, fan_sizes = _fans(f, usable, inverse[order], order, vertex_count)
+    corner_fan, fan_order, fan_sizes = _fans(f, usable, inverse[order], order)
     fan_count = len(fan_sizes)
     fan_corner_start = np.zeros(fan_count + 1, dtype=np.int32)
     fan_corner_start[1:] = np.cumsum(fan_sizes)
@@ -171,8 +171,8 @@ def _seam_pairs(faces: np.ndarray, corner_fan: np.ndarray, fan_order: np.ndarray
     return pairs.astype(np.int32).reshape(-1, 2)
 
 
-def _fans(f: np.ndarray, usable: np.ndarray, sorted_edge: np.ndarray, order: np.ndarray,
-          vertex_count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _fans(f: np.ndarray, usable: np.ndarray, sorted_edge: np.ndarray,
+          order: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(fan of each corner (3M,), the corners by fan in corner order, each fan's corner count): corners at one
     welded vertex joined through faces that share an edge there. `order` sorts the usable edge slots
     (row-major) by edge id, `sorted_edge` is their edge ids in that order. Fans are numbered by their first
@@ -205,10 +205,10 @@ def _groups(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if len(values) == 0:
         return order, np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     ordered = values[order]
-    starts = np.flatnonzero(np.concatenate([[True], ordered[1:] != ordered[:-1]]))
+    new = np.concatenate([[True], ordered[1:] != ordered[:-1]])  # where each group starts, in sorted order
     inverse = np.empty(len(values), dtype=np.int64)
-    inverse[order] = np.cumsum(np.concatenate([[0], ordered[1:] != ordered[:-1]]))
-    return order, inverse, np.diff(np.append(starts, len(values)))
+    inverse[order] = np.cumsum(new) - 1
+    return order, inverse, np.diff(np.append(np.flatnonzero(new), len(values)))
 
 
 def _weld(vertices: np.ndarray) -> tuple[np.ndarray, int]:
