@@ -553,9 +553,9 @@ def _wide_searches(past_tied_boxes: bool):
 
     def nearest_leaf_wide(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float, budget: int):
         """Nearest leaf to p of those that beat (best_sq, best_leaf) (see `beats`), over the 4-wide view, in at
-        most `budget` binary node visits (a 4-wide visit counts two): (best_leaf, best_sq, finished), the answers
-        of the binary search built the same way: both open every box that may hold a better leaf, so both find
-        the least (value, leaf), whatever the order they walk in. Triangles are tested first, then the nodes
+        most `budget` binary node visits (a 4-wide visit counts two): (best_leaf, best_sq, finished). It opens
+        every box that may hold a better leaf, so it finds the least (value, leaf) whatever the order it walks
+        in: without the tie test, the answers of the binary tree's `nearest_leaf_within`. Triangles are tested first, then the nodes
         pushed farthest first, so that the nearest is walked next. A node pushed before the best came to tie
         with its box is still opened (its entries are tested against the tie), which only costs a visit."""
         if bvh.internal_count == 0:
