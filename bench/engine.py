@@ -264,7 +264,7 @@ def measure_traversals(field, vertices, faces, *, device: str, repeat: int) -> d
 
         return wp.kernel(ours, name=f"traversal_{nearest_leaf.key}", enable_backward=False, module="unique")
 
-    # the binary tree (the exact queries' walk) and its 4-wide view (the corner searches')
+    # the binary tree (the split searches' walk) and its 4-wide view (the corner searches' and the queries')
     binary, wide = engine_search(nearest_leaf_within), engine_search(nearest_leaf_wide)
 
     @wp.kernel(enable_backward=False)
