@@ -55,6 +55,11 @@ def torus():
     return _mesh(trimesh.creation.torus(major_radius=1.0, minor_radius=0.3, major_sections=48, minor_sections=16))
 
 
+def wire(radius: float = 1e-3, height: float = 1.0, sections: int = 8):
+    """A closed cylinder far thinner than it is long: a feature thinner than any cell."""
+    return _mesh(trimesh.creation.cylinder(radius=radius, height=height, sections=sections))
+
+
 def sheet(n: int = 24):
     """An open square sheet (like cloth), n x n quads in the z = 0 plane, slightly waved."""
     x, y = np.meshgrid(np.linspace(-1, 1, n + 1), np.linspace(-1, 1, n + 1), indexing="ij")

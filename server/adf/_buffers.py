@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import warp as wp
 
@@ -17,6 +19,8 @@ class DeviceBuffers:
     def __init__(self, device: wp.Device):
         self.device = device
         self._arrays: dict[str, wp.array] = {}
+        # while fitting (`fit`), the names asked for so far: an array's first request then sets its size
+        self._fitted: set[str] | None = None
 
     def array(self, name: str, count: int, dtype) -> wp.array:
         """A zeroed array of exactly `count` elements (at least one), replacing any of that name."""
@@ -29,11 +33,32 @@ class DeviceBuffers:
         exactly `count` elements for sizes planned with their own headroom (`with_headroom`), or with
         `headroom` of at least half again the old size, for sizes that creep up call by call."""
         arr = self._arrays.get(name)
-        if arr is None or arr.shape[0] < count:
+        shrink = not headroom and self.shrinks(name, count)
+        if self._fitted is not None:
+            self._fitted.add(name)
+        if arr is None or arr.shape[0] < count or shrink:
             grown = count if arr is None or not headroom else max(count, int(arr.shape[0] * _GROWTH))
             arr = self._allocate(name, grown, dtype, zeroed=False)
             self._arrays[name] = arr
         return arr
+
+    @contextlib.contextmanager
+    def fit(self):
+        """Within it, a planned size's first request makes its array anew if the array holds more (later
+        requests of the frame only grow it, so each ends at the frame's largest): for the frame after one
+        planned from an estimate, so that the estimate's room is given back. Allocated arrays are freed in
+        stream order, as when an array grows."""
+        self._fitted = set()
+        try:
+            yield
+        finally:
+            self._fitted = None
+
+    def shrinks(self, name: str, count: int) -> bool:
+        """Whether a request of a planned size would make its array anew at that smaller size (`fit`)."""
+        arr = self._arrays.get(name)
+        return (self._fitted is not None and name not in self._fitted and arr is not None
+                and arr.shape[0] > max(int(count), 1))
 
     def _allocate(self, name: str, count: int, dtype, *, zeroed: bool) -> wp.array:
         """An array from Warp, or DeviceMemoryError naming what did not fit and how much the object holds."""
@@ -93,7 +118,8 @@ class SharedScratch:
     `take` lays the arrays it is asked for out from the front, so they overlap what the previous `take`
     returned: the caller takes a stage's arrays only once no queued work will read the last stage's (all
     run in order on one stream). The allocation is one of the object's named buffers (counted as scratch);
-    it grows when a stage needs more and never shrinks. Growing waits for the device first, so no kernel
+    it grows when a stage needs more, and shrinks only to the first stage's needs in a frame that fits
+    the object's buffers (`DeviceBuffers.fit`). Growing waits for the device first, so no kernel
     still queued reads the old allocation when it is freed: a measured frame or the first planned frame
     of new sizes may grow it, never a frame being captured as a graph, which repeats an eager one.
     """
@@ -112,13 +138,15 @@ class SharedScratch:
         for count, dtype in layout:
             offsets.append(end)
             end += -(-max(int(count), 1) * wp.types.type_size_in_bytes(dtype) // self._ALIGN) * self._ALIGN
-        if self._backing is None or self._backing.shape[0] * _SCRATCH_ELEMENT < end:
+        # 16-byte elements, so the allocation may pass 2 GiB within Warp's int32 shapes (ends are aligned)
+        elements = end // _SCRATCH_ELEMENT
+        if (self._backing is None or self._backing.shape[0] < elements
+                or self.buffers.shrinks(self.name, elements)):
             if self._backing is not None:
                 if self.device.is_cuda and self.device.is_capturing:
                     raise RuntimeError(f"{self.name}: a stage outgrew its scratch while a graph was captured")
                 wp.synchronize_device(self.device)
-            # 16-byte elements, so the allocation may pass 2 GiB within Warp's int32 shapes (ends are aligned)
-            self._backing = self.buffers.ensure(self.name, end // _SCRATCH_ELEMENT, wp.vec4)
+            self._backing = self.buffers.ensure(self.name, elements, wp.vec4)
         base = self._backing.ptr
         return [wp.array(ptr=base + offset, dtype=dtype, shape=(max(int(count), 1),), device=self.device)
                 for offset, (count, dtype) in zip(offsets, layout)]

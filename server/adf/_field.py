@@ -76,6 +76,11 @@ from badf.server.adf._tolerances import (
 
 log = logging.getLogger("badf.server")
 
+# A first frame planned from an estimate of its sizes keeps the estimate's buffers until the next frame gives
+# back what they hold beyond its plan, unless they held more than this many times that plan: it is then run
+# again at once (`DistanceField._planned_frame`).
+_ESTIMATE_KEPT = 2.0
+
 # One lock per device: Warp's CUDA sorts keep per-device scratch in native code and its launches are not
 # documented as thread-safe, so engine work on a device is serialised across threads (a worker serves each
 # object from its own thread). The device runs one stream in order anyway; only host-side work loses overlap.
@@ -240,7 +245,8 @@ class _Counters:
     last_slice_ms: float = 0.0
     last_update_wall_ms: float = 0.0
     replans: int = 0  # planned frames that outgrew their sizes and were measured again
-    measured_frames: int = 0  # frames that read their sizes back on the way: the build and every replan
+    measured_frames: int = 0  # frames that read their sizes back on the way: every replan, and a first frame
+    # that could not be planned from an estimate (refine="centroid", or too many corners to plan for)
     graph_captures: int = 0
 
 
@@ -373,7 +379,9 @@ class DistanceField:
         self._report_sizes: list[int] = []
         self._staging = wp.empty(vertex_count, dtype=wp.vec3, device="cpu", pinned=self._device.is_cuda)
         self._failed_update: str | None = None  # why the last update failed after its input was checked
-        self._planned = False  # whether the next frame may be planned (once a frame has been measured)
+        self._planned = False  # whether the next frame may be planned (from an estimate, or a frame's counts)
+        self._estimated = False  # whether the next frame's plan is an estimate (the first frame's, from its area)
+        self._fit_buffers = False  # whether the next frame sizes the buffers anew (after an estimated frame)
         self._graph = None  # (key, graph, stage names, report sizes) of the captured planned frame
         self._graph_candidate = None  # key of the last planned frame run eagerly
         self.use_graphs = True
@@ -384,6 +392,9 @@ class DistanceField:
         self._corners = CornerField(b)
         self._points = PointQuery(b)
         self._slice_cells = SliceCells(b)
+        # the first frame is planned from the surface's area where the octree can estimate it, and measured
+        # again only if it outgrew that plan
+        self._planned = self._estimated = self._octree.plan_first_frame(len(f), self._domain.local_side)
         self._apply(local, extent, domain_moved=True)
 
     # -- public API -----------------------------------------------------------------------------------
@@ -662,7 +673,10 @@ class DistanceField:
         clock = self._clock
         clock.reset()
         stream = wp.ScopedStream(self._stream) if self._stream is not None else contextlib.nullcontext()
-        with wp.ScopedDevice(self._device), stream, clock.stage("total"):
+        # the frame after one planned from an estimate gives back what the estimate held beyond its own plan
+        fitting = self._buffers.fit() if self._fit_buffers else contextlib.nullcontext()
+        self._fit_buffers = False
+        with wp.ScopedDevice(self._device), stream, fitting, clock.stage("total"):
             with clock.stage("upload"):
                 # through a pinned buffer, so the copy runs asynchronously (a pageable one waits for it)
                 host = self._staging
@@ -675,12 +689,7 @@ class DistanceField:
                 else:
                     wp.copy(self._vertices, host)
                 self._normals.upload_extent(extent)
-            fits = False
-            if self._planned:
-                self._run_planned(domain_moved)
-                fits = self._take_report()
-                if not fits:
-                    self._counters.replans += 1
+            fits = self._planned and self._planned_frame(domain_moved)
             if not fits:
                 self._graph = None
                 self._pipeline(measure=True, domain_moved=domain_moved)
@@ -689,6 +698,25 @@ class DistanceField:
                 self._planned = True
             self._corners.keep_frame()
         self._counters.last_update_wall_ms = (time.perf_counter() - wall) * 1e3
+
+    def _planned_frame(self, domain_moved: bool) -> bool:
+        """Run a planned frame; whether it fitted its plan (else it is counted as a replan)."""
+        self._run_planned(domain_moved)
+        fits = self._take_report()
+        estimated, self._estimated = self._estimated, False
+        if fits and estimated:
+            # Later frames are planned for what this one found, and the next gives back what the estimate held
+            # beyond that. An estimate far too large (a surface lying on copies of itself) is given back at once:
+            # the frame is run again at the sizes it found.
+            if self._octree.replan_from_counts() <= _ESTIMATE_KEPT:
+                self._fit_buffers = True
+            else:
+                with self._buffers.fit():
+                    self._run_planned(domain_moved)
+                    fits = self._take_report()
+        if not fits:
+            self._counters.replans += 1
+        return fits
 
     def _pipeline(self, *, measure: bool, domain_moved: bool = False) -> None:
         """Queue one frame's kernels (measuring reads sizes back on the way) and its report."""
@@ -779,6 +807,7 @@ class DistanceField:
         wp.copy(self._report, self._octree.level_starts, dest_offset=k + 1, count=self._depth + 1)
         wp.copy(self._report, self._normals.parts_overlap, dest_offset=k + 2 + self._depth, count=1)
         wp.copy(self._report, self._normals.seams_torn, dest_offset=k + 3 + self._depth, count=1)
+        wp.copy(self._report, self._octree.surface_count, dest_offset=k + 4 + self._depth, count=1)
         return sizes
 
     def _take_report(self) -> bool:
@@ -790,7 +819,7 @@ class DistanceField:
         counts = [int(x) for x in report[:k]]
         if any(count > capacity for count, capacity in zip(counts, self._report_sizes)):
             return False
-        self._octree.take_counts(counts, report[k + 1 : k + 2 + self._depth])
+        self._octree.take_counts(counts, report[k + 1 : k + 2 + self._depth], int(report[k + 4 + self._depth]))
         self._normals.set_frame_method(int(report[k]), int(report[k + 2 + self._depth]), int(report[k + 3 + self._depth]))
         return True
 

@@ -56,6 +56,19 @@ _ROW_SUM_LIMIT = (1 << 31) - 1
 # The first try of a measured pass over the surface cells is held to the larger of these (above).
 _FIRST_TRY_CELLS = 1 << 20
 _FIRST_TRY_PER_FACE = 64
+# An octree over a surface smooth at the finest cells' scale, by halo: its finest cells (surface and halo) per
+# cell of `sheet` (2 A / h^2, an estimate from the area A), and its internal nodes and distinct corners per
+# finest cell. The largest of each over the ten meshes of ../shared/data and tests/data and a sphere, at
+# depths 5, 7 and 8 (CPU, 2026-11-28); the cells per sheet cell are 3/4 of the halo's 2 halo + 1 layers.
+# `Octree.plan_first_frame` plans the first frame from them; a mesh they undercount (features thinner than a
+# cell, such as a wire, cross more cells than their area says) outgrows the plan, and its first frame is
+# measured as before.
+_SHEET_OCTREE = {0: (0.75, 0.34, 3.37), 1: (2.25, 0.22, 2.11), 2: (3.76, 0.19, 1.47)}
+# The most corners a first frame is planned for. Past it the frame is measured: an estimate from the area may be
+# far too large (a surface lying on copies of itself counts each again), and what it would allocate must not
+# outgrow the device where the field itself fits; and a field that large spends longer in its kernels than in
+# the read-backs a measured frame waits on.
+_FIRST_PLAN_CORNERS = 1 << 22
 _EVERYWHERE = 3.0e38  # the region box of an object without a region of interest
 
 
@@ -106,6 +119,7 @@ class Octree:
         # counts of the last build, from its report (`take_counts`); a measuring build sets the ones it
         # needs on the way
         self.surface_cell_count = 0  # unique finest cells holding surface (and halo)
+        self.surface_only_count = 0  # of those, the ones the surface crosses (the rest are the halo's)
         self.node_count = 0
         self.internal_count = 0
         self.level_counts = np.zeros(depth + 1, dtype=np.int64)
@@ -125,6 +139,41 @@ class Octree:
         self.region_cells = (wp.vec3i(0, 0, 0), wp.vec3i(top, top, top))
         self.region_box = (wp.vec3(-_EVERYWHERE), wp.vec3(_EVERYWHERE))
         self.has_region = False
+
+    def plan_first_frame(self, face_count: int, side: float) -> bool:
+        """Plan a first frame from the surface area (`_SHEET_OCTREE`), so that it reads nothing back until
+        its end, as a later frame (a measured frame waits on the device four times); whether it did. Only
+        under refine="surface": the centroid rule keeps a cell per triangle at most, which the area says
+        nothing about. The frame's report tells whether the plan held (the owner measures the frame again
+        if not) and, with `replan_from_counts`, sizes later frames by what it found."""
+        if self.refine != "surface":
+            return False
+        sheet, expected = self._first_estimate(face_count, side)
+        per_sheet, internal_per_cell, corners_per_cell = _SHEET_OCTREE[self.halo]
+        cells = min(per_sheet * sheet, expected)
+        if corners_per_cell * cells > _FIRST_PLAN_CORNERS:
+            return False
+        self.cell_set.planned = with_headroom(int(cells))
+        self.surface_planned = with_headroom(int(0.75 * sheet))
+        self.internal_capacity = with_headroom(int(internal_per_cell * cells))
+        self.node_capacity = self.cell_set.planned + self.internal_capacity
+        self.corner_count = int(corners_per_cell * cells)
+        self.corner_set.planned = with_headroom(self.corner_count)
+        return True
+
+    def replan_from_counts(self) -> float:
+        """Plan later frames for the counts the last frame reported (`take_counts`), as a measuring build
+        plans them for the counts it reads; returns how many times over the old plan held the new one's
+        cells or corners, whichever more."""
+        over = max(self.cell_set.planned / with_headroom(self.surface_cell_count),
+                   self.corner_set.planned / with_headroom(self.corner_count))
+        self.cell_set.planned = with_headroom(self.surface_cell_count)
+        if self.halo > 0:  # the halo pass's threads (it alone counts the cells before its own)
+            self.surface_planned = with_headroom(self.surface_only_count)
+        self.node_capacity = with_headroom(self.node_count)
+        self.internal_capacity = with_headroom(self.internal_count)
+        self.corner_set.planned = with_headroom(self.corner_count)
+        return over
 
     def set_region(self, box: np.ndarray, origin: wp.vec3, side: float) -> None:
         """Refine only where `box` ((2, 3), local coordinates) needs it: finest cells the surface crosses
@@ -165,9 +214,11 @@ class Octree:
                 (self.totals, 0, self.node_capacity), (self.totals, 1, self.internal_capacity),
                 (self.corner_set.view.count, 0, self.corner_set.list_capacity)]
 
-    def take_counts(self, counts: list[int], level_starts: np.ndarray) -> None:
-        """Record the counts a build found (in the order of `report`), and its levels' first nodes."""
+    def take_counts(self, counts: list[int], level_starts: np.ndarray, surface_only: int) -> None:
+        """Record the counts a build found (in the order of `report`), its levels' first nodes, and how many
+        of its finest cells the surface crosses (before the halo's)."""
         self.surface_cell_count = counts[0]
+        self.surface_only_count = surface_only
         self.node_count, self.internal_count, self.corner_count = counts[-3], counts[-2], counts[-1]
         self.level_counts = np.diff(np.append(level_starts.astype(np.int64), self.node_count))
 
@@ -190,19 +241,8 @@ class Octree:
         cell = side / resolution
         shift = KEY_TOP_BIT - 3 * d
         volume = (2 * halo + 1) ** 3
-        # a surface of area A crosses about 1.5 A / h^2 cells of size h (the centroid rule keeps no more of them,
-        # and at most one per triangle); a halo thickens that sheet of cells one thick to about 2 halo + 1
-        sheet = int(2.0 * self.surface_area / (cell * cell)) + 64
-        if self.refine == "surface":
-            kernel, expected = _insert_surface_cells, sheet * (2 * halo + 1)
-        else:
-            kernel, expected = _insert_centroid_cells, min(sheet, face_count) * (2 * halo + 1)
-        # the first try's table is kept for later frames: an estimate past the grid's cells would only waste it.
-        # The area counts twice a surface lying on another (100 copies of a square took 945 MB of scratch at
-        # depth 8 for one square's 24 MB; fifteenth outside check), so the first try is held to
-        # _FIRST_TRY_CELLS or _FIRST_TRY_PER_FACE a face, whichever is more, and a measured pass grows from it
-        held = max(_FIRST_TRY_CELLS, _FIRST_TRY_PER_FACE * face_count * (2 * halo + 1))
-        expected = min(expected, resolution**3, held)
+        kernel = _insert_surface_cells if self.refine == "surface" else _insert_centroid_cells
+        expected = self._first_estimate(face_count, side)[1]
 
         lower, upper = self.region_cells
         if self.refine == "surface":
@@ -237,6 +277,23 @@ class Octree:
         keys, _ = self.cell_set.sort_listed(shift, KEY_TOP_BIT)
         self.cell_count = self.cell_set.view.count
         return keys
+
+    def _first_estimate(self, face_count: int, side: float) -> tuple[int, int]:
+        """(sheet, expected): the cells of size h that a surface of area A crosses, about 1.5 A / h^2, with
+        room (2 A / h^2); and the first try of a measuring pass over the surface cells, that sheet thickened
+        by the halo (2 halo + 1 cells) and held within the grid and the caps below."""
+        resolution = 1 << self.depth
+        cell = side / resolution
+        thickness = 2 * self.halo + 1
+        sheet = int(2.0 * self.surface_area / (cell * cell)) + 64
+        # the centroid rule keeps no more of the sheet's cells, and at most one per triangle
+        expected = thickness * (sheet if self.refine == "surface" else min(sheet, face_count))
+        # the first try's table is kept for later frames: an estimate past the grid's cells would only waste it.
+        # The area counts twice a surface lying on another (100 copies of a square took 945 MB of scratch at
+        # depth 8 for one square's 24 MB; fifteenth outside check), so the first try is held to
+        # _FIRST_TRY_CELLS or _FIRST_TRY_PER_FACE a face, whichever is more, and a measured pass grows from it
+        held = max(_FIRST_TRY_CELLS, _FIRST_TRY_PER_FACE * face_count * thickness)
+        return sheet, min(expected, resolution**3, held)
 
     # -- stage 2: Algorithm 1 over the radix tree of the cells ---------------------------------------------
     def _octree_nodes(self, cell_keys: wp.array, measure: bool) -> None:
