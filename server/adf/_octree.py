@@ -150,8 +150,11 @@ class Octree:
             return False
         sheet, expected = self._first_estimate(face_count, side)
         per_sheet, internal_per_cell, corners_per_cell = _SHEET_OCTREE[self.halo]
-        cells = min(per_sheet * sheet, expected)
-        if corners_per_cell * cells > _FIRST_PLAN_CORNERS:
+        cells = per_sheet * sheet
+        # where the first try's caps bind, the area says more than the faces can be trusted to cross (a surface
+        # lying on copies of itself counts each again): measured, as before (an outside check found spot at
+        # depth 9, halo 2, outgrowing such a plan, and 30 squares on one another planned 30 times too large)
+        if cells > expected or corners_per_cell * cells > _FIRST_PLAN_CORNERS:
             return False
         self.cell_set.planned = with_headroom(int(cells))
         self.surface_planned = with_headroom(int(0.75 * sheet))
