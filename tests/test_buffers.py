@@ -74,6 +74,33 @@ def test_a_scratch_take_lays_its_arrays_apart_and_over_the_last_take(device, mon
     assert np.all(e.numpy() == 3) and np.all(f.numpy() == 4)
 
 
+def test_fitting_sets_each_array_by_its_first_request_of_the_frame(device):
+    """Within `fit`, an array's first request makes it anew at that size if it held more, and later requests
+    only grow it, so each ends at the frame's largest; requests with headroom (query batches) keep theirs.
+    The scratch shrinks to its first take likewise. Outside `fit` nothing shrinks."""
+    buffers = DeviceBuffers(wp.get_device(device))
+    scratch = SharedScratch("scratch", buffers)
+    big = buffers.ensure("keys", 1000, wp.int64)
+    batch = buffers.ensure("query.points", 1000, wp.vec3, headroom=True)
+    scratch.take((1000, wp.int64))
+    assert buffers.ensure("keys", 10, wp.int64).ptr == big.ptr  # not fitting: kept
+    with buffers.fit():
+        small = buffers.ensure("keys", 10, wp.int64)
+        assert small.shape[0] == 10
+        grown = buffers.ensure("keys", 300, wp.int64)  # a later request of the frame grows it
+        assert grown.shape[0] == 300
+        assert buffers.ensure("keys", 20, wp.int64).ptr == grown.ptr  # and is not cut again
+        assert buffers.ensure("query.points", 5, wp.vec3, headroom=True).ptr == batch.ptr
+        (taken,) = scratch.take((100, wp.int64))
+        assert scratch._backing.capacity == 1024  # 800 bytes, aligned to 256, from the first take's 8,000
+        taken.fill_(5)
+        assert np.all(taken.numpy() == 5)
+    assert buffers.ensure("keys", 10, wp.int64).ptr == grown.ptr
+    held = buffers.nbytes()
+    buffers.release("query.")
+    assert buffers.nbytes() == held - batch.capacity and "query.points" not in buffers._arrays
+
+
 def test_a_buffer_past_warps_limits_is_a_clear_memory_error():
     """Warp's array shapes are int32: a request past them (a depth-10 octree of a large surface needed a
     2.5 GB scratch of bytes) is a DeviceMemoryError naming the buffer and what to change, before allocating."""

@@ -838,6 +838,33 @@ def test_a_first_frame_planned_from_the_area_equals_a_measured_one(device, monke
     assert held <= sum(measured.stats()["memory_bytes"].values())
 
 
+def test_a_builds_arrays_are_given_back_once_frames_keep_the_domain(device):
+    """What only a BVH build uses (the sort and the radix tree's links) is freed on the first frame that keeps
+    the domain; an object whose frames keep moving the domain keeps them, allocating nothing per frame; and
+    the field stays exact through both."""
+    vertices, faces = meshes.sphere()
+    field = DistanceField(vertices, faces, depth=4, device=device)
+
+    def build_arrays():
+        return {name: arr.ptr for name, arr in field._buffers._arrays.items() if name.startswith("bvh.build.")}
+
+    held = build_arrays()
+    assert len(held) == 8  # the sort's keys and faces, and six of the radix tree's arrays
+    field.update(vertices * np.float32(1.01))
+    assert build_arrays() == {}
+    frames = [vertices + np.float32(40.0 * k) for k in range(1, 4)]  # each moves the domain
+    field.update(frames[0])
+    moved = build_arrays()
+    assert len(moved) == 8
+    for frame in frames[1:]:
+        field.update(frame)
+        assert build_arrays() == moved  # the same arrays: nothing allocated per frame
+    assert field.stats()["domain_moves"] == 3
+    positions, values, _ = field.corner_samples()
+    truth = oracle.signed_distance(positions, frames[-1], faces)
+    assert np.abs(values - truth).max() <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frames[-1])
+
+
 def test_planned_frames_equal_measured_frames(device):
     """Frames after the first run without reading sizes back (on CUDA, replayed from a captured graph);
     they give exactly what a frame that measures every size gives, also when a frame outgrows the planned

@@ -42,6 +42,11 @@ class DeviceBuffers:
             self._arrays[name] = arr
         return arr
 
+    def release(self, prefix: str) -> None:
+        """Give back every array whose name starts with `prefix` (freed once nothing else holds it)."""
+        for name in [name for name in self._arrays if name.startswith(prefix)]:
+            del self._arrays[name]
+
     @contextlib.contextmanager
     def fit(self):
         """Within it, a planned size's first request makes its array anew if the array holds more (later

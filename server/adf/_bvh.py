@@ -124,10 +124,10 @@ class Bvh:
         self.device = buffers.device
         n, nodes, slots = face_count, 2 * face_count - 1, max(2 * (face_count - 1), 1)
         b = buffers
-        # radix_sort_pairs needs room for twice the count
-        self.sort_keys = b.array("bvh.sort_keys", 2 * n, wp.int64)
-        self.sort_faces = b.array("bvh.sort_faces", 2 * n, wp.int32)
-        self.face_leaf = b.array("bvh.face_leaf", n, wp.int32)  # inverse of sort_faces
+        # the sorted keys (the spatial seeds read them) and the face of each leaf (the refit reads them)
+        self.leaf_key = b.array("bvh.leaf_key", n, wp.int64)
+        self.leaf_face = b.array("bvh.leaf_face", n, wp.int32)
+        self.face_leaf = b.array("bvh.face_leaf", n, wp.int32)  # inverse of leaf_face
         self.leaf_count = b.array("bvh.leaf_count", 1, wp.int32)
         self.leaf_count.fill_(n)
         self.parent_slot = b.array("bvh.parent_slot", nodes, wp.int32)
@@ -147,25 +147,31 @@ class Bvh:
         """Sort the triangles by the Morton code of their centroid in the domain and link the tree."""
         n = self.face_count
         resolution = 1 << self.code_levels
+        b = self._buffers
+        # what only a build uses: the sort, with its room for twice the count, and the radix tree's links
+        # (given back by `give_back_build`)
+        keys = b.ensure("bvh.build.keys", 2 * n, wp.int64)
+        order = b.ensure("bvh.build.faces", 2 * n, wp.int32)
         wp.launch(
             _triangle_keys,
             dim=n,
             inputs=[vertices, faces, origin, resolution / side, resolution, self.index_bits],
-            outputs=[self.sort_keys, self.sort_faces],
+            outputs=[keys, order],
             device=self.device,
         )
-        wp.utils.radix_sort_pairs(self.sort_keys, self.sort_faces, n)
-        wp.launch(_invert_order, dim=n, inputs=[self.sort_faces], outputs=[self.face_leaf], device=self.device)
+        wp.utils.radix_sort_pairs(keys, order, n)
+        wp.copy(self.leaf_key, keys, count=n)
+        wp.copy(self.leaf_face, order, count=n)
+        wp.launch(_invert_order, dim=n, inputs=[self.leaf_face], outputs=[self.face_leaf], device=self.device)
         self.parent_slot.fill_(-1)
         if n > 1:
-            b = self._buffers
             left = b.ensure("bvh.build.left", n - 1, wp.int32)
             right = b.ensure("bvh.build.right", n - 1, wp.int32)
             first = b.ensure("bvh.build.first", n - 1, wp.int32)
             last = b.ensure("bvh.build.last", n - 1, wp.int32)
             prefix = b.ensure("bvh.build.prefix", n - 1, wp.int32)
             parent = b.ensure("bvh.build.parent", 2 * n - 1, wp.int32)
-            link_radix_tree(self.sort_keys, self.leaf_count, n, parent, left, right, first, prefix, last)
+            link_radix_tree(self.leaf_key, self.leaf_count, n, parent, left, right, first, prefix, last)
             wp.launch(
                 _link_slots,
                 dim=n - 1,
@@ -178,13 +184,19 @@ class Bvh:
             self.wide.link(self.slot_child, self.slot_count, self.slot_first, self.parent_slot, left, right)
         self._cuts.clear()
 
+    def give_back_build(self) -> None:
+        """Free what only a build uses (3.3 MB for the bunny), for an object whose frames no longer rebuild:
+        its owner calls this on a frame that keeps the domain, once the last frame's work is done, so objects
+        whose every frame moves the domain keep them and allocate nothing per frame."""
+        self._buffers.release("bvh.build.")
+
     def refit(self, vertices: wp.array, faces: wp.array) -> None:
         """Recompute every child box (and winding moments) bottom-up from the current vertices."""
         self.visits.zero_()
         wp.launch(
             _refit,
             dim=self.face_count,
-            inputs=[vertices, faces, self.sort_faces, self.parent_slot, self.slot_count, self.slot_child,
+            inputs=[vertices, faces, self.leaf_face, self.parent_slot, self.slot_count, self.slot_child,
                     self.internal_count, 1 if self.with_moments else 0],
             outputs=[self.slot_lower, self.slot_upper, self.triangles, self.visits, self.node_moments],
             device=self.device,
@@ -211,15 +223,15 @@ class Bvh:
         v.slot_lower, v.slot_upper = self.slot_lower, self.slot_upper
         v.slot_child, v.slot_first, v.slot_count = self.slot_child, self.slot_first, self.slot_count
         v.triangles = self.triangles
-        v.leaf_face = self.sort_faces
+        v.leaf_face = self.leaf_face
         v.face_leaf = self.face_leaf
-        v.leaf_key = self.sort_keys
+        v.leaf_key = self.leaf_key
         v.node_moments = self.node_moments
         v.wide_planes, v.wide_child, v.wide_slot = self.wide.planes, self.wide.child, self.wide.slot
         return v
 
     def leaf_faces(self) -> np.ndarray:
-        return self.sort_faces.numpy()[: self.face_count]
+        return self.leaf_face.numpy()
 
 
 class WideTree:

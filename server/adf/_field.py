@@ -660,15 +660,18 @@ class DistanceField:
         """Upload a frame and rebuild the field: refit (or rebuild, when the domain moved), sign data,
         octree, corners, corner distances.
 
-        Every frame after the first measured one is planned, also when the domain moved (the BVH is then
-        rebuilt): its buffers keep last frame's sizes with headroom and nothing is read back until the end,
-        when the frame's counts are checked against them; a frame that outgrew them is run again, measured.
+        Every frame is planned where it can be, also when the domain moved (the BVH is then rebuilt): its
+        buffers keep last frame's sizes with headroom (the first frame's are estimated from the surface's
+        area) and nothing is read back until the end, when the frame's counts are checked against them; a
+        frame that outgrew them is run again, measured.
         On CUDA a planned frame is replayed from a CUDA graph, captured from an identical planned frame
         (same sizes, domain and settings), so it costs one launch. Each object runs its frames on a stream
         of its own: the graph holds the sort's scratch memory, which Warp keeps per stream and another
         object's larger sort would otherwise reallocate.
         """
         wall = time.perf_counter()
+        if not domain_moved:
+            self._bvh.give_back_build()
         self._medial_marked = False  # the leaves the medial surface crosses, marked on demand (query)
         clock = self._clock
         clock.reset()
