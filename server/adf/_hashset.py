@@ -121,12 +121,14 @@ class HashSet:
         b = self.buffers
         view = HashSetView()
         # listed keys and slots are sorted afterwards: radix_sort_pairs needs twice the room
+        # the listed slots hold twice the list, as radix_sort_pairs needs; the listed keys are sorted in the
+        # spent table, which is as long (sort_listed)
         view.keys, view.listed_slots = self.scratch.take((capacity, wp.int64), (capacity, wp.int32))
         view.keys.fill_(-1)
         view.capacity = capacity
         view.list_capacity = capacity // 2
-        view.listed_keys = b.ensure(self.name + ".keys", capacity, wp.int64)
-        view.listed_keys[: view.list_capacity].fill_(UNLISTED)  # the rest is the sort's room
+        view.listed_keys = b.ensure(self.name + ".keys", view.list_capacity, wp.int64)
+        view.listed_keys.fill_(UNLISTED)
         view.count = b.ensure(f"{self.name}.count.{self.label}", 1, wp.int32)
         view.count.zero_()
         self._view = view
@@ -147,9 +149,15 @@ class HashSet:
         return wp.array(ptr=table.ptr, dtype=wp.int32, shape=table.shape, device=self.device)
 
     def sort_listed(self, begin_bit: int, end_bit: int) -> tuple[wp.array, wp.array]:
-        """Sort the whole list (with the slots): the listed keys in order, then UNLISTED; (keys, slots)."""
+        """Sort the whole list (with the slots): the listed keys in order, then UNLISTED; (keys, slots).
+
+        The table is spent once every key is in, and it is twice the list's length, the room radix_sort_pairs
+        needs: the keys are sorted there and copied back, so the list, which outlives the frame (the corners'
+        keys are the next frame's coherence), holds no room of its own (2 MB for the bunny's corners)."""
         v = self._view
-        wp.utils.radix_sort_pairs(v.listed_keys, v.listed_slots, v.list_capacity, begin_bit=begin_bit, end_bit=end_bit)
+        wp.copy(v.keys, v.listed_keys, count=v.list_capacity)
+        wp.utils.radix_sort_pairs(v.keys, v.listed_slots, v.list_capacity, begin_bit=begin_bit, end_bit=end_bit)
+        wp.copy(v.listed_keys, v.keys, count=v.list_capacity)
         return v.listed_keys, v.listed_slots
 
 

@@ -318,15 +318,18 @@ class Octree:
             self.node_count, self.internal_count = (int(x) for x in self.host.read_array(self.totals, 2))
             self.node_capacity = with_headroom(self.node_count)
             self.internal_capacity = with_headroom(self.internal_count)
-        node_keys = b.ensure("oct.node_keys", 2 * self.node_capacity, wp.int64)
-        node_keys[: self.node_capacity].fill_(UNLISTED)  # the rest is the sort's room
+        node_keys = b.ensure("oct.node_keys", self.node_capacity, wp.int64)
+        node_keys.fill_(UNLISTED)
         wp.launch(_fill_octree_nodes, dim=tree_nodes,
                   inputs=[cell_keys, parent, prefix, first, self.cell_count, capacity, d, offsets, self.node_capacity],
                   outputs=[node_keys], device=self.device)
-        # the sort's values are not used; the radix tree is dead by now, and the nodes hold no more
-        # entries than its edges
-        values = self.scratch.take((2 * self.node_capacity, wp.int32))[0]
-        wp.utils.radix_sort_pairs(node_keys, values, self.node_capacity, end_bit=LEVEL_SHIFT + 4)
+        # The radix tree is dead by now: the sort runs in the scratch, with the room for twice the count that
+        # radix_sort_pairs needs, and the sorted keys are copied back (the node keys outlive the frame; their
+        # room would be 1.4 MB for the bunny). The sort's values are not used.
+        room, values = self.scratch.take((2 * self.node_capacity, wp.int64), (2 * self.node_capacity, wp.int32))
+        wp.copy(room, node_keys, count=self.node_capacity)
+        wp.utils.radix_sort_pairs(room, values, self.node_capacity, end_bit=LEVEL_SHIFT + 4)
+        wp.copy(node_keys, room, count=self.node_capacity)
         self.node_keys = node_keys
 
     # -- stage 3: child masks and first children ----------------------------------------------------------
