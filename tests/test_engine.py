@@ -797,6 +797,19 @@ def test_long_searches_shared_out_give_the_same_corners(device, name, depth, ban
     assert np.all(np.abs(np.abs(values) - truth.distance)[within] <= tol.EXACT_DISTANCE * diag)
 
 
+def _assert_same_fields(a: DistanceField, b: DistanceField, points: np.ndarray) -> None:
+    """Two objects' counts, corners, octree cells and queries (distance, normal, face) are equal bit for bit."""
+    assert a.stats()["counts"] == b.stats()["counts"]
+    for got, expected in zip(a.corner_samples(), b.corner_samples()):
+        np.testing.assert_array_equal(got, expected)
+    for got, expected in zip(a.octree_cells(), b.octree_cells()):
+        np.testing.assert_array_equal(got, expected)
+    got = a.query(points, outputs=("distance", "normal", "face"))
+    expected = b.query(points, outputs=("distance", "normal", "face"))
+    for output in ("distance", "normal", "face"):
+        np.testing.assert_array_equal(getattr(got, output), getattr(expected, output))
+
+
 @pytest.mark.parametrize("name,depth,halo", [("spot", 6, 1), ("sphere", 5, 0), ("sphere", 5, 2), ("wire", 6, 1)])
 def test_a_first_frame_planned_from_the_area_equals_a_measured_one(device, monkeypatch, name, depth, halo):
     """The first frame is planned from the surface's area (no read-back until its end); it gives exactly
@@ -824,15 +837,7 @@ def test_a_first_frame_planned_from_the_area_equals_a_measured_one(device, monke
         if k > 0:
             planned.update(frame)
             measured.update(frame)
-        assert planned.stats()["counts"] == measured.stats()["counts"]
-        for got, expected in zip(planned.corner_samples(), measured.corner_samples()):
-            np.testing.assert_array_equal(got, expected)
-        for got, expected in zip(planned.octree_cells(), measured.octree_cells()):
-            np.testing.assert_array_equal(got, expected)
-        a = planned.query(points, outputs=("distance", "normal", "face"))
-        b = measured.query(points, outputs=("distance", "normal", "face"))
-        for output in ("distance", "normal", "face"):
-            np.testing.assert_array_equal(getattr(a, output), getattr(b, output))
+        _assert_same_fields(planned, measured, points)
     # the estimate's room is given back by the second frame: no more held than after measured frames
     held = sum(planned.stats()["memory_bytes"].values())
     assert held <= sum(measured.stats()["memory_bytes"].values())
@@ -890,15 +895,7 @@ def test_planned_frames_equal_measured_frames(device):
         other.update(other_vertices * np.float32(1.0 + 0.01 * k))
         measured._planned = False  # every frame of this one measures its sizes
         measured.update(frame)
-        assert planned.stats()["counts"] == measured.stats()["counts"]
-        for got, expected in zip(planned.corner_samples(), measured.corner_samples()):
-            np.testing.assert_array_equal(got, expected)
-        for got, expected in zip(planned.octree_cells(), measured.octree_cells()):
-            np.testing.assert_array_equal(got, expected)
-        a = planned.query(points, outputs=("distance", "normal", "face"))
-        b = measured.query(points, outputs=("distance", "normal", "face"))
-        for name in ("distance", "normal", "face"):
-            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+        _assert_same_fields(planned, measured, points)
     stats = planned.stats()
     assert stats["replans"] >= 1 and stats["domain_moves"] >= 3
     assert stats["measured_frames"] == stats["replans"]  # each replan, and no domain move
