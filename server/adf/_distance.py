@@ -275,13 +275,10 @@ class CornerField:
         if not coherent:
             self._next = None  # nothing is carried to the next frame
             return
-        # this frame's nearest faces, for the next frame once this one is kept, with its corners (the keys
-        # past the count are UNLISTED, after every lattice key, so a binary search over them needs no count),
-        # which stay in their buffer until the next frame's octree
-        next_face = b.ensure("corner.next_face", capacity, wp.int32)
-        wp.launch(_leaf_faces, dim=capacity, inputs=[self.leaf, count, capacity, bvh], outputs=[next_face],
-                  device=self.device)
-        self._next = (corner_keys, count, next_face, capacity, np.asarray(centre, dtype=np.float64).copy(), domain.side)
+        # this frame's corners (the keys past the count are UNLISTED, after every lattice key, so a binary search
+        # over them needs no count), which stay in their buffer until the next frame's octree, and its nearest
+        # leaves, whose faces the next frame starts from once this one is kept
+        self._next = (corner_keys, count, bvh, capacity, np.asarray(centre, dtype=np.float64).copy(), domain.side)
 
     def keep_frame(self) -> None:
         """Make the last computed frame's faces the next frame's starting bounds. A frame that outgrew its
@@ -289,12 +286,15 @@ class CornerField:
         answer (down to which of two equally near faces is named) does not depend on the failed run."""
         if self._next is None:
             return
-        keys, count, next_face, capacity, centre, side = self._next
+        keys, count, bvh, capacity, centre, side = self._next
         b = self.buffers
         self._previous_keys = b.ensure("corner.prev_keys", capacity, wp.int64)
         self._previous_face = b.ensure("corner.prev_face", capacity, wp.int32)
         wp.copy(self._previous_keys, keys, count=capacity)
-        wp.copy(self._previous_face, next_face, count=capacity)
+        # faces, not leaves: the BVH is rebuilt when the domain moves. Worked out here, from the field's own
+        # nearest leaves, rather than kept aside by every frame (1 MB for the bunny)
+        wp.launch(_leaf_faces, dim=capacity, inputs=[self.leaf, count, capacity, bvh], outputs=[self._previous_face],
+                  device=self.device)
         wp.copy(self._previous_count, count, count=1)
         self._previous_capacity, self._previous_centre, self._previous_side = capacity, centre, side
 
