@@ -55,7 +55,7 @@ def test_engine_benchmark_runs(tmp_path: Path) -> None:
         assert first[key] > 0, key
     # none measured but the build, where its estimate from the area missed
     assert first["moving_domain_moves"] == 3 and first["moving_measured_frames"] <= 1
-    assert 0 <= first["builds_measured"] <= 3  # of the three builds timed
+    assert first["builds_measured"] == 0  # spot is smooth at depth 4: its first frames are planned from the area
     assert 0 <= first["adf_vs_exact_max_error_diag"] < 1
     assert report["dense_baseline"]["query_ms"] > 0
     # each speed with its accuracy against the float64 oracle: exact queries within the exact tolerance, ADF
