@@ -120,7 +120,6 @@ class HashSet:
         capacity = max(2 * expected, _MIN_CAPACITY)
         b = self.buffers
         view = HashSetView()
-        # listed keys and slots are sorted afterwards: radix_sort_pairs needs twice the room
         # the listed slots hold twice the list, as radix_sort_pairs needs; the listed keys are sorted in the
         # spent table, which is as long (sort_listed)
         view.keys, view.listed_slots = self.scratch.take((capacity, wp.int64), (capacity, wp.int32))
