@@ -33,7 +33,7 @@ class DeviceBuffers:
         exactly `count` elements for sizes planned with their own headroom (`with_headroom`), or with
         `headroom` of at least half again the old size, for sizes that creep up call by call."""
         arr = self._arrays.get(name)
-        shrink = not headroom and self.shrinks(name, count)
+        shrink = not headroom and self._shrinks(name, count)
         if self._fitted is not None:
             self._fitted.add(name)
         if arr is None or arr.shape[0] < count or shrink:
@@ -59,8 +59,8 @@ class DeviceBuffers:
         finally:
             self._fitted = None
 
-    def shrinks(self, name: str, count: int) -> bool:
-        """Whether a request of a planned size would make its array anew at that smaller size (`fit`)."""
+    def _shrinks(self, name: str, count: int) -> bool:
+        """Whether a request of a planned size makes its array anew at that smaller size (`fit`)."""
         arr = self._arrays.get(name)
         return (self._fitted is not None and name not in self._fitted and arr is not None
                 and arr.shape[0] > max(int(count), 1))
@@ -145,13 +145,15 @@ class SharedScratch:
             end += -(-max(int(count), 1) * wp.types.type_size_in_bytes(dtype) // self._ALIGN) * self._ALIGN
         # 16-byte elements, so the allocation may pass 2 GiB within Warp's int32 shapes (ends are aligned)
         elements = end // _SCRATCH_ELEMENT
-        if (self._backing is None or self._backing.shape[0] < elements
-                or self.buffers.shrinks(self.name, elements)):
+        grows = self._backing is not None and self._backing.shape[0] < elements
+        if grows and self.device.is_cuda and self.device.is_capturing:
+            raise RuntimeError(f"{self.name}: a stage outgrew its scratch while a graph was captured")
+        # every take is a request of the named buffer, so `DeviceBuffers.fit` treats the scratch as any other
+        backing = self.buffers.ensure(self.name, elements, wp.vec4)
+        if backing is not self._backing:
             if self._backing is not None:
-                if self.device.is_cuda and self.device.is_capturing:
-                    raise RuntimeError(f"{self.name}: a stage outgrew its scratch while a graph was captured")
-                wp.synchronize_device(self.device)
-            self._backing = self.buffers.ensure(self.name, elements, wp.vec4)
+                wp.synchronize_device(self.device)  # before the old allocation's last reference goes
+            self._backing = backing
         base = self._backing.ptr
         return [wp.array(ptr=base + offset, dtype=dtype, shape=(max(int(count), 1),), device=self.device)
                 for offset, (count, dtype) in zip(offsets, layout)]

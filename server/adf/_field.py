@@ -246,7 +246,8 @@ class _Counters:
     last_update_wall_ms: float = 0.0
     replans: int = 0  # planned frames that outgrew their sizes and were measured again
     measured_frames: int = 0  # frames that read their sizes back on the way: every replan, and a first frame
-    # that could not be planned from an estimate (refine="centroid", or too many corners to plan for)
+    # that could not be planned from an estimate (refine="centroid", an area the first try's caps cut, or too
+    # many corners to plan for)
     graph_captures: int = 0
 
 
