@@ -242,14 +242,13 @@ def measure_allocations(vertices, faces, *, device: str, depth: int, frames: int
 
 
 def measure_traversals(field, vertices, faces, *, device: str, repeat: int) -> dict:
-    """Nearest-face search at the field's corners: this engine's BVH (binary, and the 4-wide view the corner
-    searches walk) against Warp's wp.Mesh BVH
-    (mesh_query_point_no_sign), each from no bound and from the bound of the corner's known nearest face
-    (what coherence gives). Distances only, no sign; mismatches are counted against each other."""
+    """Nearest-face search at the field's corners: this engine's BVH (the 4-wide view the searches walk; the
+    binary tree's own boxes were dropped on 2026-11-28) against Warp's wp.Mesh BVH (mesh_query_point_no_sign),
+    each from no bound and from the bound of the corner's known nearest face (what coherence gives). Distances
+    only, no sign; mismatches are counted against the engine's search without a bound."""
     import warp as wp
 
-    from badf.server.adf._bvh import (UNLIMITED_VISITS, BvhView, leaf_distance_sq, nearest_leaf_wide,
-                                      nearest_leaf_within)
+    from badf.server.adf._bvh import UNLIMITED_VISITS, BvhView, leaf_distance_sq, nearest_leaf_wide
 
     def engine_search(nearest_leaf):
         def ours(bvh: BvhView, points: wp.array(dtype=wp.vec3), seeds: wp.array(dtype=wp.int32), use_seed: int,
@@ -266,8 +265,7 @@ def measure_traversals(field, vertices, faces, *, device: str, repeat: int) -> d
 
         return wp.kernel(ours, name=f"traversal_{nearest_leaf.key}", enable_backward=False, module="unique")
 
-    # the binary tree (the split searches' walk) and its 4-wide view (the corner searches' and the queries')
-    binary, wide = engine_search(nearest_leaf_within), engine_search(nearest_leaf_wide)
+    wide = engine_search(nearest_leaf_wide)
 
     @wp.kernel(enable_backward=False)
     def warps(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), bound: wp.array(dtype=wp.float32), use_seed: int,
@@ -297,7 +295,7 @@ def measure_traversals(field, vertices, faces, *, device: str, repeat: int) -> d
     n = len(local)
     results = {}
     out = {"corners": n}
-    for name, kernel, first in (("engine_bvh", binary, bvh), ("engine_wide", wide, bvh), ("warp_mesh", warps, mesh.id)):
+    for name, kernel, first in (("engine_wide", wide, bvh), ("warp_mesh", warps, mesh.id)):
         for use_seed in (0, 1):
             d = wp.zeros(n, dtype=wp.float32, device=device)
             launch = lambda _: wp.launch(kernel, dim=n, inputs=[first, points, bound if kernel is warps else seeds,
@@ -306,7 +304,7 @@ def measure_traversals(field, vertices, faces, *, device: str, repeat: int) -> d
             label = f"{name}_{'bounded' if use_seed else 'unbounded'}_ms"
             out[label] = round(_median(_time_wall(launch, device, repeat)), 4)
             results[label] = d.numpy()
-    reference = results["engine_bvh_unbounded_ms"]
+    reference = results["engine_wide_unbounded_ms"]
     for label, d in results.items():
         out[label.replace("_ms", "_mismatches")] = int(np.sum(np.abs(d - reference) > 1e-6 * (1 + np.abs(reference))))
     return out

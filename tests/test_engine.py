@@ -22,8 +22,8 @@ from badf.server.adf._bvh import (
     leaf_distance_held_to_box_sq,
     leaf_distance_sq,
     nearest_leaf_past_ties,
+    beats,
     nearest_leaf_wide,
-    nearest_leaf_within,
     winding_number,
 )
 
@@ -844,9 +844,9 @@ def test_a_first_frame_planned_from_the_area_equals_a_measured_one(device, monke
 
 
 def test_a_builds_arrays_are_given_back_once_frames_keep_the_domain(device):
-    """What only a BVH build uses (the sort and the radix tree's links) is freed on the first frame that keeps
-    the domain; an object whose frames keep moving the domain keeps them, allocating nothing per frame; and
-    the field stays exact through both."""
+    """What only a BVH build uses (the sort, the radix tree's links and the slots' ranges and parents) is freed on
+    the first frame that keeps the domain; an object whose frames keep moving the domain keeps them, allocating
+    nothing per frame; and the field stays exact through both."""
     vertices, faces = meshes.sphere()
     field = DistanceField(vertices, faces, depth=4, device=device)
 
@@ -854,13 +854,14 @@ def test_a_builds_arrays_are_given_back_once_frames_keep_the_domain(device):
         return {name: arr.ptr for name, arr in field._buffers._arrays.items() if name.startswith("bvh.build.")}
 
     held = build_arrays()
-    assert len(held) == 8  # the sort's keys and faces, and six of the radix tree's arrays
+    # the sort's keys and faces, six of the radix tree's arrays, and the slots' first triangles, counts and parents
+    assert len(held) == 11
     field.update(vertices * np.float32(1.01))
     assert build_arrays() == {}
     frames = [vertices + np.float32(40.0 * k) for k in range(1, 4)]  # each moves the domain
     field.update(frames[0])
     moved = build_arrays()
-    assert len(moved) == 8
+    assert len(moved) == 11
     for frame in frames[1:]:
         field.update(frame)
         assert build_arrays() == moved  # the same arrays: nothing allocated per frame
@@ -1161,7 +1162,7 @@ def _budgeted_corner_searches(bvh: BvhView, points: wp.array(dtype=wp.vec3), see
                               budget: int, finished: wp.array(dtype=wp.int32)):
     i = wp.tid()
     p = points[i]
-    leaf, d_sq, done = nearest_leaf_within(bvh, p, seeds[i], leaf_distance_sq(bvh, seeds[i], p), budget)
+    leaf, d_sq, done = nearest_leaf_wide(bvh, p, seeds[i], leaf_distance_sq(bvh, seeds[i], p), budget)
     finished[i] = wp.where(done, 1, 0)
 
 
@@ -1189,17 +1190,24 @@ def test_a_part_far_from_the_rest_leaves_the_bvh_pruning_near_the_rest(device):
 
 
 @wp.kernel(module="unique", module_options=EXACT_ROUNDING)  # rounded as the engine's searches are
-def _binary_and_wide_searches(bvh: BvhView, points: wp.array(dtype=wp.vec3), seeds: wp.array(dtype=wp.int32),
-                              leaves: wp.array2d(dtype=wp.int32), squares: wp.array2d(dtype=wp.float32)):
+def _wide_searches_and_every_leaf(bvh: BvhView, points: wp.array(dtype=wp.vec3), seeds: wp.array(dtype=wp.int32),
+                                  leaves: wp.array2d(dtype=wp.int32), squares: wp.array2d(dtype=wp.float32)):
+    """Column 0: the 4-wide search from the seed leaf; column 1: the least (value, leaf) over every leaf, by the
+    same triangle test."""
     i = wp.tid()
     p = points[i]
-    start = leaf_distance_sq(bvh, seeds[i], p)
-    leaf, d_sq, done = nearest_leaf_within(bvh, p, seeds[i], start, UNLIMITED_VISITS)
+    leaf, d_sq, done = nearest_leaf_wide(bvh, p, seeds[i], leaf_distance_sq(bvh, seeds[i], p), UNLIMITED_VISITS)
     leaves[i, 0] = leaf
     squares[i, 0] = d_sq
-    leaf, d_sq, done = nearest_leaf_wide(bvh, p, seeds[i], start, UNLIMITED_VISITS)
-    leaves[i, 1] = leaf
-    squares[i, 1] = d_sq
+    best = int(-1)
+    best_sq = float(3.0e38)
+    for k in range(bvh.internal_count + 1):
+        d_sq = leaf_distance_sq(bvh, k, p)
+        if beats(d_sq, k, best_sq, best):
+            best = k
+            best_sq = d_sq
+    leaves[i, 1] = best
+    squares[i, 1] = best_sq
 
 
 def _wide_tree_leaves(field: DistanceField) -> list[int]:
@@ -1229,11 +1237,12 @@ def _wide_tree_leaves(field: DistanceField) -> list[int]:
 
 
 @pytest.mark.parametrize("name", ["stanford-bunny", "box", "sphere", "sheet", "single-triangle", "two-parts"])
-def test_the_corner_searches_4_wide_view_finds_the_binary_trees_answers(device, name):
-    """The corner searches walk a 4-wide view of the BVH (every other level folded away). It must hold every
-    triangle once, each entry's box must hold what lies under it, and its search must name the leaf, and the
-    squared distance, that the binary tree's names, from any start: near and far, on vertices and edges where
-    faces tie, from the nearest leaf and from arbitrary ones."""
+def test_the_4_wide_views_search_finds_the_least_leaf_from_any_start(device, name):
+    """The searches walk a 4-wide view of the BVH (every other level folded away), which the refit fills. It must
+    hold every triangle once, each entry's box must hold what lies under it, and its search must name the leaf,
+    and the squared distance, that a test of every leaf names (the least distance, then the least leaf), from any
+    start: near and far, on vertices and edges where faces tie, from the nearest leaf and from arbitrary ones.
+    Checked after a build and again after a refit to a deformed frame."""
     if name == "two-parts":  # a part far from the rest: a deep, lopsided tree
         sphere = trimesh.creation.icosphere(subdivisions=3)
         vertices = np.vstack([sphere.vertices, [[300.0, 0, 0], [300.01, 0, 0], [300.0, 0.01, 0]]])
@@ -1241,23 +1250,30 @@ def test_the_corner_searches_4_wide_view_finds_the_binary_trees_answers(device, 
     else:
         vertices, faces = meshes.load(name)
     field = DistanceField(vertices, faces, depth=4, sign="none", device=device)
-    if len(faces) > 1:
-        assert sorted(_wide_tree_leaves(field)) == list(range(len(faces)))
     rng = np.random.default_rng(5)
     centre, side = domain_of(field)
     points = np.concatenate([centre + (rng.random((400, 3)) - 0.5) * 1.5 * side,
                              vertices[rng.integers(0, len(vertices), 100)],
                              meshes.surface_samples(vertices, faces, 1, rng)[:200]])
-    local = wp.array(field._domain.to_local(points), dtype=wp.vec3, device=device)
-    for seeds in (rng.integers(0, len(faces), len(points)), np.zeros(len(points), int)):
-        leaves = wp.zeros((len(points), 2), dtype=wp.int32, device=device)
-        squares = wp.zeros((len(points), 2), dtype=wp.float32, device=device)
-        wp.launch(_binary_and_wide_searches, dim=len(points),
-                  inputs=[field._bvh.view(), local, wp.array(seeds, dtype=wp.int32, device=device)],
-                  outputs=[leaves, squares], device=device)
-        leaves, squares = leaves.numpy(), squares.numpy()
-        assert np.array_equal(leaves[:, 0], leaves[:, 1]), f"{np.count_nonzero(leaves[:, 0] != leaves[:, 1])} leaves differ"
-        assert np.array_equal(squares[:, 0], squares[:, 1])
+    # a second frame within the domain: refitted, not rebuilt
+    wobbled = vertices + 1e-3 * side * np.sin(vertices[:, [1, 2, 0]] * 7.0 / side)
+    for frame in (vertices, wobbled):
+        if frame is wobbled:
+            field.update(frame)
+            assert field.stats()["domain_moves"] == 0
+        if len(faces) > 1:
+            assert sorted(_wide_tree_leaves(field)) == list(range(len(faces)))
+        local = wp.array(field._domain.to_local(points), dtype=wp.vec3, device=device)
+        for seeds in (rng.integers(0, len(faces), len(points)), np.zeros(len(points), int)):
+            leaves = wp.zeros((len(points), 2), dtype=wp.int32, device=device)
+            squares = wp.zeros((len(points), 2), dtype=wp.float32, device=device)
+            wp.launch(_wide_searches_and_every_leaf, dim=len(points),
+                      inputs=[field._bvh.view(), local, wp.array(seeds, dtype=wp.int32, device=device)],
+                      outputs=[leaves, squares], device=device)
+            leaves, squares = leaves.numpy(), squares.numpy()
+            differ = np.count_nonzero(leaves[:, 0] != leaves[:, 1])
+            assert differ == 0, f"{differ} of {len(points)} searches named another leaf than the least"
+            assert np.array_equal(squares[:, 0], squares[:, 1])
 
 
 @wp.kernel

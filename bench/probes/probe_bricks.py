@@ -8,7 +8,8 @@ opened too) and tests each triangle it reaches against every corner, keeping eac
 leaf) as `beats` orders them. The answers are then the engine's; the probe counts any that differ.
 
 It ran on the H100 at aa2a613 (docs/results/bricks-h100-0123), when the engine's corner searches walked the
-binary tree; since 92e1c93 they walk its 4-wide view, which the bricks here do not."""
+binary tree; since 92e1c93 they walk its 4-wide view, which the bricks here do not. It reads the binary
+tree's boxes, which the engine no longer keeps (dropped after 2f9483c): check out 2f9483c to run it."""
 import sys
 
 import numpy as np

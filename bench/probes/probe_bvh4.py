@@ -9,7 +9,8 @@ the least distance, then the least leaf), so its answers are the engine's; the p
 
 It ran on the H100 at 9ab8bc3 (docs/results/bvh4-h100-0129). Since 92e1c93 the engine's corner searches walk
 the planes variant themselves (`nearest_leaf_wide` over `WideTree`), so its "binary (engine)" rows now time
-that walk; check out 9ab8bc3 to compare with the binary one."""
+that walk; check out 9ab8bc3 to compare with the binary one. It reads the binary tree's boxes, which the engine
+no longer keeps (dropped after 2f9483c): check out 2f9483c to run it."""
 import sys
 import time
 

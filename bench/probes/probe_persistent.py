@@ -1,7 +1,8 @@
 """Probe, not part of the product (python3 bench/probes/probe_persistent.py MESH.npz [device]): corner
 searches by persistent threads that take corners one at a time from a shared counter, stop after a budget
 of node visits and list the rest for the subtree split (the engine's _split_searches), against the engine's
-own kernel, one thread per corner."""
+own kernel, one thread per corner. It searches the binary tree's subtrees, whose boxes the engine no longer
+keeps (dropped after 2f9483c): check out 2f9483c to run it."""
 import sys
 import time
 

@@ -1,6 +1,7 @@
 """Probe, not part of the product (python3 bench/probes/probe_split.py MESH.npz [device]; results in
 docs/results/probe-split-*): corner searches where corners far from the surface last frame go
-straight to the subtree split, and the rest search whole (or with a budget)."""
+straight to the subtree split, and the rest search whole (or with a budget). It searches the binary tree's
+subtrees, whose boxes the engine no longer keeps (dropped after 2f9483c): check out 2f9483c to run it."""
 import sys
 import time
 

@@ -4,18 +4,17 @@ Nodes live in one index space of 2n - 1: internal nodes 0..n-2 (0 is the root), 
 where leaf k is the k-th triangle in Morton order. The same radix-tree kernel builds the hierarchy the
 octree is read from (paper, Algorithm 1), over the sorted surface-cell keys instead of triangle keys.
 
-For the searches each internal node i keeps its two children in slots 2i and 2i + 1: the child's box (as
-two vec4, the lower corner's w holding the child's triangle count), its node id, and the range of sorted
-triangles under it. One visit reads both children's boxes in four 16-byte loads, and a child with at
-most LEAF_SIZE triangles is searched directly over its contiguous triangles (the tree stays binary, one
-triangle per leaf, as the octree derivation needs; the searches just stop early). Triangles are packed
-three vec4 per leaf, for the same reason, and the winding-number moments four vec4 per internal node.
+Each internal node i keeps its two children in slots 2i and 2i + 1 (their node ids), which the winding numbers
+walk; triangles are packed three vec4 per leaf, and the winding-number moments four vec4 per internal node.
 
-The corner searches and the queries walk a 4-wide view of the same tree (`WideTree`): every other level folded
-away, so a node's children are its binary node's grandchildren (or a child itself where that is a single
-triangle). A visit reads the four boxes as six 16-byte planes (the lower x of all four, then y, ..., then the
-upper z) and tests them together; a walk takes about half the dependent steps of the binary one. On the H100 the bunny's
-corner searches took 1.02 against 1.35 ms (2026-11-28, `bench/probes/probe_bvh4.py`), with the same answers.
+The searches walk a 4-wide view of the same tree (`WideTree`): every other level folded away, so a node's
+children are its binary node's grandchildren (or a child itself where that is a single triangle). A visit reads
+the four boxes as six 16-byte planes (the lower x of all four, then y, ..., then the upper z) and tests them
+together; a walk takes about half the dependent steps of a binary one. On the H100 the bunny's corner searches
+took 1.02 against 1.35 ms over the binary tree (2026-11-28, `bench/probes/probe_bvh4.py`), with the same answers.
+The boxes live only there: the refit climbs the view, writing each box into its entry of the parent's planes,
+and merges the moments of a view's node and of the binary nodes between it and its entries. (The binary tree's
+own boxes, both children's per node, were dropped on 2026-11-28: 4.4 MB for the bunny.)
 
 The winding numbers (Barill et al. 2018) replace a node far from the point by the first two terms of its
 expansion: the dipole (the sum of area-weighted normals) and the first moment of the normals about the
@@ -44,7 +43,6 @@ from badf.server.adf._geometry import (
     quantize,
     solid_angle_careful,
     solid_angle_checked,
-    stack_float,
     stack_int,
     thread_fence,
     triangle_distance_sq,
@@ -88,11 +86,7 @@ class BvhView:
     internal_count: int
     code_levels: int  # the keys' layout (`code_layout`), for spatial seeds
     index_bits: int
-    slot_lower: wp.array(dtype=wp.vec4)  # (2(n-1),) box of child s of node s // 2; w: its triangle count
-    slot_upper: wp.array(dtype=wp.vec4)
-    slot_child: wp.array(dtype=wp.int32)  # node id of that child
-    slot_first: wp.array(dtype=wp.int32)  # first sorted triangle under it
-    slot_count: wp.array(dtype=wp.int32)  # triangles under it
+    slot_child: wp.array(dtype=wp.int32)  # (2(n-1),) node id of child s of node s // 2
     triangles: wp.array(dtype=wp.vec4)  # (3n,) corners a, b, c of each leaf (Morton order), xyz
     leaf_face: wp.array(dtype=wp.int32)  # (n,) face index of each leaf
     face_leaf: wp.array(dtype=wp.int32)  # (n,) leaf of each face
@@ -110,7 +104,7 @@ class BvhView:
     # (>= 0), a single triangle's leaf (-1 - leaf), or NO_CHILD. Node 0 is the root.
     wide_planes: wp.array(dtype=wp.vec4)
     wide_child: wp.array(dtype=wp.int32)
-    wide_slot: wp.array(dtype=wp.int32)  # the binary slot each entry's box is copied from (-1 for none)
+    wide_first: wp.array(dtype=wp.int32)  # the first leaf under each entry (the queries' tie test)
 
 
 class Bvh:
@@ -122,7 +116,7 @@ class Bvh:
         self.code_levels, self.index_bits = code_layout(face_count)
         self.with_moments = with_moments
         self.device = buffers.device
-        n, nodes, slots = face_count, 2 * face_count - 1, max(2 * (face_count - 1), 1)
+        n, slots = face_count, max(2 * (face_count - 1), 1)
         b = buffers
         # the sorted keys (the spatial seeds read them) and the face of each leaf (the refit reads them)
         self.leaf_key = b.array("bvh.leaf_key", n, wp.int64)
@@ -130,13 +124,7 @@ class Bvh:
         self.face_leaf = b.array("bvh.face_leaf", n, wp.int32)  # inverse of leaf_face
         self.leaf_count = b.array("bvh.leaf_count", 1, wp.int32)
         self.leaf_count.fill_(n)
-        self.parent_slot = b.array("bvh.parent_slot", nodes, wp.int32)
-        self.visits = b.array("bvh.visits", max(n - 1, 1), wp.int32)
-        self.slot_lower = b.array("bvh.slot_lower", slots, wp.vec4)
-        self.slot_upper = b.array("bvh.slot_upper", slots, wp.vec4)
         self.slot_child = b.array("bvh.slot_child", slots, wp.int32)
-        self.slot_first = b.array("bvh.slot_first", slots, wp.int32)
-        self.slot_count = b.array("bvh.slot_count", slots, wp.int32)
         self.triangles = b.array("bvh.triangles", 3 * n, wp.vec4)
         self.node_moments = b.array("bvh.node_moments", 4 * max(n - 1, 1) if with_moments else 1, wp.vec4)
         self.wide = WideTree(n, b)
@@ -163,7 +151,6 @@ class Bvh:
         wp.copy(self.leaf_key, keys, count=n)
         wp.copy(self.leaf_face, order, count=n)
         wp.launch(_invert_order, dim=n, inputs=[self.leaf_face], outputs=[self.face_leaf], device=self.device)
-        self.parent_slot.fill_(-1)
         if n > 1:
             left = b.ensure("bvh.build.left", n - 1, wp.int32)
             right = b.ensure("bvh.build.right", n - 1, wp.int32)
@@ -172,106 +159,124 @@ class Bvh:
             prefix = b.ensure("bvh.build.prefix", n - 1, wp.int32)
             parent = b.ensure("bvh.build.parent", 2 * n - 1, wp.int32)
             link_radix_tree(self.leaf_key, self.leaf_count, n, parent, left, right, first, prefix, last)
+            # each slot's first sorted triangle and count, and each node's slot in its parent: the view's link
+            # reads them, and nothing after it
+            slot_first = b.ensure("bvh.build.slot_first", 2 * (n - 1), wp.int32)
+            slot_count = b.ensure("bvh.build.slot_count", 2 * (n - 1), wp.int32)
+            parent_slot = b.ensure("bvh.build.parent_slot", 2 * n - 1, wp.int32)
+            parent_slot.fill_(-1)
             wp.launch(
                 _link_slots,
                 dim=n - 1,
                 inputs=[left, right, first, last, n - 1],
-                outputs=[self.slot_child, self.slot_first, self.slot_count, self.parent_slot],
+                outputs=[self.slot_child, slot_first, slot_count, parent_slot],
                 device=self.device,
             )
             # the radix tree's left and right links are spent once the slots hold them: the 4-wide view's link
             # takes them for its own per-node scratch
-            self.wide.link(self.slot_child, self.slot_count, self.slot_first, self.parent_slot, left, right)
+            self.wide.link(self.slot_child, slot_count, slot_first, parent_slot, left, right)
         self._cuts.clear()
 
     def give_back_build(self) -> None:
-        """Free what only a build uses (3.3 MB for the bunny), for an object whose frames no longer rebuild:
+        """Free what only a build uses (4.9 MB for the bunny), for an object whose frames no longer rebuild:
         its owner calls this on a frame that keeps the domain, once the last frame's work is done, so objects
         whose every frame moves the domain keep them and allocate nothing per frame."""
         self._buffers.release("bvh.build.")
 
     def refit(self, vertices: wp.array, faces: wp.array) -> None:
-        """Recompute every child box (and winding moments) bottom-up from the current vertices."""
-        self.visits.zero_()
+        """Recompute every box in the 4-wide view (and the winding moments) bottom-up from the current vertices."""
+        w = self.wide
+        w.arrivals.zero_()
         wp.launch(
             _refit,
             dim=self.face_count,
-            inputs=[vertices, faces, self.leaf_face, self.parent_slot, self.slot_count, self.slot_child,
+            inputs=[vertices, faces, self.leaf_face, w.leaf_entry, w.up, w.node, w.child, self.slot_child,
                     self.internal_count, 1 if self.with_moments else 0],
-            outputs=[self.slot_lower, self.slot_upper, self.triangles, self.visits, self.node_moments],
+            outputs=[self.triangles, w.planes, w.arrivals, self.node_moments],
             device=self.device,
         )
-        if self.internal_count > 0:
-            self.wide.fill(self.slot_lower, self.slot_upper)
 
     def cut(self, levels: int) -> wp.array:
-        """The slots of the subtrees `levels` below the root (2^levels entries, -1 for none), which together
-        hold every triangle once; kept until the next build, as only the tree's shape decides them."""
-        if levels not in self._cuts:
-            cut = self._buffers.ensure(f"bvh.cut.{levels}", 1 << levels, wp.int32)
+        """The 4-wide view's entries `cut_bits(levels)` binary levels below the root (2^cut_bits(levels) of them, -1
+        where none lies that deep), whose subtrees together hold every triangle once; kept until the next build,
+        as only the tree's shape decides them."""
+        bits = cut_bits(levels)
+        if bits not in self._cuts:
+            cut = self._buffers.ensure(f"bvh.cut.{bits}", 1 << bits, wp.int32)
             if self.internal_count > 0:
-                wp.launch(_cut_slots, dim=1 << levels, inputs=[self.view(), levels], outputs=[cut], device=self.device)
+                wp.launch(_cut_entries, dim=1 << bits, inputs=[self.view(), bits // 2], outputs=[cut],
+                          device=self.device)
             else:
                 cut.fill_(-1)
-            self._cuts[levels] = cut
-        return self._cuts[levels]
+            self._cuts[bits] = cut
+        return self._cuts[bits]
 
     def view(self) -> BvhView:
         v = BvhView()
         v.internal_count = self.internal_count
         v.code_levels, v.index_bits = self.code_levels, self.index_bits
-        v.slot_lower, v.slot_upper = self.slot_lower, self.slot_upper
-        v.slot_child, v.slot_first, v.slot_count = self.slot_child, self.slot_first, self.slot_count
+        v.slot_child = self.slot_child
         v.triangles = self.triangles
         v.leaf_face = self.leaf_face
         v.face_leaf = self.face_leaf
         v.leaf_key = self.leaf_key
         v.node_moments = self.node_moments
-        v.wide_planes, v.wide_child, v.wide_slot = self.wide.planes, self.wide.child, self.wide.slot
+        v.wide_planes, v.wide_child, v.wide_first = self.wide.planes, self.wide.child, self.wide.first
         return v
 
     def leaf_faces(self) -> np.ndarray:
         return self.leaf_face.numpy()
 
 
+def cut_bits(levels: int) -> int:
+    """The depth, in binary levels, of the cut `Bvh.cut(levels)` gives: `levels` rounded up to even, as the 4-wide
+    view's entries lie two binary levels below their node."""
+    return 2 * ((levels + 1) // 2)
+
+
 class WideTree:
-    """The 4-wide view of a Bvh's binary tree, which the corner searches and the queries walk (see the module's
-    docstring).
+    """The 4-wide view of a Bvh's binary tree, which the searches walk and which holds the tree's boxes (see the
+    module's docstring).
 
     Its nodes are the binary internal nodes at even depth, numbered in the binary tree's order. Node k's entry j
-    is one of the binary slots two levels down (or one, where the slot holds a single triangle): `slot` keeps
-    which, so a refit copies the binary tree's boxes into the planes, and the queries' search reads a tied
-    entry's first leaf there. Every even-depth node but the root has a
-    parent at odd depth, which has at most two children, so with E even-depth and O odd-depth internal nodes,
-    E <= 1 + 2 O and E + O = n - 1 give E <= (2n - 1) / 3: the arrays are sized for that (the count is not read
-    back at a build) and hold NO_CHILD past it. The view takes a child of at most LEAF_SIZE triangles as a single
-    triangle, which it is while LEAF_SIZE is 1.
+    is one of the binary slots two levels down (or one, where the slot holds a single triangle), in the binary
+    tree's order: a child's two entries follow each other. Every even-depth node but the root has a parent at
+    odd depth, which has at most two children, so with E even-depth and O odd-depth internal nodes, E <= 1 + 2 O
+    and E + O = n - 1 give E <= (2n - 1) / 3: the arrays are sized for that (the count is not read back at a
+    build) and hold NO_CHILD past it. The view takes a child of at most LEAF_SIZE triangles as a single triangle,
+    which it is while LEAF_SIZE is 1.
+
+    The refit climbs it: each leaf's thread writes its box into its entry (`leaf_entry`), and the last entry of a
+    node to arrive merges the node's box and writes it into the node's own entry in its parent (`up`).
     """
 
     def __init__(self, face_count: int, buffers: DeviceBuffers):
         self.internal_count = face_count - 1
         self.capacity = (2 * face_count - 1) // 3 + 1
         self.device = buffers.device
-        self.slot = buffers.array("bvh.wide.slot", 4 * self.capacity, wp.int32)
-        self.child = buffers.array("bvh.wide.child", 4 * self.capacity, wp.int32)
-        self.planes = buffers.array("bvh.wide.planes", 6 * self.capacity, wp.vec4)
+        b = buffers
+        self.child = b.array("bvh.wide.child", 4 * self.capacity, wp.int32)
+        self.first = b.array("bvh.wide.first", 4 * self.capacity, wp.int32)
+        self.planes = b.array("bvh.wide.planes", 6 * self.capacity, wp.vec4)
+        # the refit's: each node's binary node, the entry that holds it in its parent (-1 for the root), each
+        # leaf's entry, and how many of each node's entries have arrived
+        self.node = b.array("bvh.wide.node", self.capacity, wp.int32)
+        self.up = b.array("bvh.wide.up", self.capacity, wp.int32)
+        self.leaf_entry = b.array("bvh.wide.leaf_entry", face_count, wp.int32)
+        self.arrivals = b.array("bvh.wide.arrivals", self.capacity, wp.int32)
 
     def link(self, slot_child: wp.array, slot_count: wp.array, slot_first: wp.array, parent_slot: wp.array,
              even: wp.array, rank: wp.array) -> None:
-        """Number the even-depth nodes (in the binary tree's order) and link each one's entries; `even` and
-        `rank` are scratch of one int32 per internal node."""
+        """Number the even-depth nodes (in the binary tree's order) and link each one's entries, whose boxes are
+        left empty until a refit; `even` and `rank` are scratch of one int32 per internal node."""
         internal = self.internal_count
-        self.slot.fill_(-1)
         self.child.fill_(NO_CHILD)
+        self.up.fill_(-1)
+        wp.launch(_empty_planes, dim=6 * self.capacity, inputs=[self.planes], device=self.device)
         wp.launch(_even_depth, dim=internal, inputs=[parent_slot], outputs=[even], device=self.device)
         wp.utils.array_scan(even, rank, inclusive=False)
         wp.launch(_link_wide, dim=internal, inputs=[even, rank, slot_child, slot_count, slot_first],
-                  outputs=[self.slot, self.child], device=self.device)
-
-    def fill(self, slot_lower: wp.array, slot_upper: wp.array) -> None:
-        """Copy the refitted binary boxes into the planes."""
-        wp.launch(_fill_wide_planes, dim=self.capacity, inputs=[self.slot, slot_lower, slot_upper],
-                  outputs=[self.planes], device=self.device)
+                  outputs=[self.child, self.first, self.node, self.up, self.leaf_entry], device=self.device)
 
 
 @wp.kernel(enable_backward=False)
@@ -289,57 +294,54 @@ def _even_depth(parent_slot: wp.array(dtype=wp.int32), even: wp.array(dtype=wp.i
 @wp.kernel(enable_backward=False)
 def _link_wide(even: wp.array(dtype=wp.int32), rank: wp.array(dtype=wp.int32), slot_child: wp.array(dtype=wp.int32),
                slot_count: wp.array(dtype=wp.int32), slot_first: wp.array(dtype=wp.int32),
-               wide_slot: wp.array(dtype=wp.int32), wide_child: wp.array(dtype=wp.int32)):
+               wide_child: wp.array(dtype=wp.int32), wide_first: wp.array(dtype=wp.int32),
+               wide_node: wp.array(dtype=wp.int32), wide_up: wp.array(dtype=wp.int32),
+               leaf_entry: wp.array(dtype=wp.int32)):
     i = wp.tid()
     if even[i] == 0:
         return
-    base = 4 * rank[i]
-    entry = int(0)
+    k = rank[i]
+    wide_node[k] = i
+    entry = 4 * k
     for side in range(2):
         slot = 2 * i + side
         if slot_count[slot] <= LEAF_SIZE:
-            wide_slot[base + entry] = slot
-            wide_child[base + entry] = -1 - slot_first[slot]
+            _link_entry(entry, slot, rank, slot_child, slot_count, slot_first, wide_child, wide_first, wide_up,
+                        leaf_entry)
             entry += 1
         else:
             inner = slot_child[slot]
             for inner_side in range(2):
-                grand = 2 * inner + inner_side
-                wide_slot[base + entry] = grand
-                if slot_count[grand] <= LEAF_SIZE:
-                    wide_child[base + entry] = -1 - slot_first[grand]
-                else:
-                    wide_child[base + entry] = rank[slot_child[grand]]
+                _link_entry(entry, 2 * inner + inner_side, rank, slot_child, slot_count, slot_first, wide_child,
+                            wide_first, wide_up, leaf_entry)
                 entry += 1
 
 
+@wp.func
+def _link_entry(entry: int, slot: int, rank: wp.array(dtype=wp.int32), slot_child: wp.array(dtype=wp.int32),
+                slot_count: wp.array(dtype=wp.int32), slot_first: wp.array(dtype=wp.int32),
+                wide_child: wp.array(dtype=wp.int32), wide_first: wp.array(dtype=wp.int32),
+                wide_up: wp.array(dtype=wp.int32), leaf_entry: wp.array(dtype=wp.int32)):
+    """Entry `entry` of the view holds binary slot `slot`: a single triangle, or an even-depth node."""
+    first = slot_first[slot]
+    wide_first[entry] = first
+    if slot_count[slot] <= LEAF_SIZE:
+        wide_child[entry] = -1 - first
+        leaf_entry[first] = entry
+    else:
+        child = rank[slot_child[slot]]
+        wide_child[entry] = child
+        wide_up[child] = entry
+
+
 @wp.kernel(enable_backward=False)
-def _fill_wide_planes(wide_slot: wp.array(dtype=wp.int32), slot_lower: wp.array(dtype=wp.vec4),
-                      slot_upper: wp.array(dtype=wp.vec4), planes: wp.array(dtype=wp.vec4)):
-    k = wp.tid()
-    lower_x = wp.vec4(EMPTY_BOX)
-    lower_y = wp.vec4(EMPTY_BOX)
-    lower_z = wp.vec4(EMPTY_BOX)
-    upper_x = wp.vec4(-EMPTY_BOX)
-    upper_y = wp.vec4(-EMPTY_BOX)
-    upper_z = wp.vec4(-EMPTY_BOX)
-    for j in range(4):
-        slot = wide_slot[4 * k + j]
-        if slot >= 0:
-            lower = slot_lower[slot]
-            upper = slot_upper[slot]
-            lower_x[j] = lower[0]
-            lower_y[j] = lower[1]
-            lower_z[j] = lower[2]
-            upper_x[j] = upper[0]
-            upper_y[j] = upper[1]
-            upper_z[j] = upper[2]
-    planes[6 * k] = lower_x
-    planes[6 * k + 1] = lower_y
-    planes[6 * k + 2] = lower_z
-    planes[6 * k + 3] = upper_x
-    planes[6 * k + 4] = upper_y
-    planes[6 * k + 5] = upper_z
+def _empty_planes(planes: wp.array(dtype=wp.vec4)):
+    """Every entry's box empty (lower above upper, so no point comes within reach of it): an absent entry's stays so."""
+    i = wp.tid()
+    if i % 6 < 3:
+        planes[i] = wp.vec4(EMPTY_BOX)
+    else:
+        planes[i] = wp.vec4(-EMPTY_BOX)
 
 
 def link_radix_tree(
@@ -431,102 +433,22 @@ def leaf_distance_held_to_box_sq(bvh: BvhView, leaf: int, p: wp.vec3) -> float:
 
 
 @wp.func
-def _nearest_in_range(bvh: BvhView, p: wp.vec3, first: int, count: int, best_leaf: int, best_sq: float):
-    for leaf in range(first, first + count):
-        d_sq = leaf_distance_sq(bvh, leaf, p)
-        if beats(d_sq, leaf, best_sq, best_leaf):
-            best_sq = d_sq
-            best_leaf = leaf
-    return best_leaf, best_sq
-
-
-@wp.func
-def nearest_in_subtree(bvh: BvhView, p: wp.vec3, root: int, best_leaf: int, best_sq: float, budget: int):
-    """Nearest leaf under internal node `root` that beats (best_sq, best_leaf) (see `beats`), in at most
-    `budget` node visits: (best_leaf, best_sq, finished). An unfinished search still returns a valid upper
-    bound.
-
-    The paper's Algorithm 2: depth-first, nearer child first, small subtrees searched at once, pruning
-    every box farther than the best so far (a box exactly as far may hold a tie of lower index). A good
-    starting bound (coherence) prunes early.
-    """
-    nodes = stack_int()
-    bounds = stack_float()
-    nodes[0] = root
-    bounds[0] = 0.0
-    count = int(1)
-    visits = int(0)
-    while count > 0:
-        count -= 1
-        if bounds[count] > best_sq:
-            continue
-        if visits == budget:
-            return best_leaf, best_sq, False
-        visits += 1
-        slot = 2 * nodes[count]
-        lower_0 = load_vec4(bvh.slot_lower, slot)
-        lower_1 = load_vec4(bvh.slot_lower, slot + 1)
-        d_0 = box_distance_sq(p, _xyz(lower_0), _xyz(load_vec4(bvh.slot_upper, slot)))
-        d_1 = box_distance_sq(p, _xyz(lower_1), _xyz(load_vec4(bvh.slot_upper, slot + 1)))
-        near = slot
-        far = slot + 1
-        d_near = d_0
-        d_far = d_1
-        near_small = lower_0[3] <= float(LEAF_SIZE)
-        far_small = lower_1[3] <= float(LEAF_SIZE)
-        if d_1 < d_0:
-            near = slot + 1
-            far = slot
-            d_near = d_1
-            d_far = d_0
-            near_small = lower_1[3] <= float(LEAF_SIZE)
-            far_small = lower_0[3] <= float(LEAF_SIZE)
-        # small subtrees first, the nearer one first, so the bound tightens before the far test
-        if near_small and d_near <= best_sq:
-            best_leaf, best_sq = _nearest_in_range(bvh, p, bvh.slot_first[near], bvh.slot_count[near], best_leaf,
-                                                   best_sq)
-        if far_small and d_far <= best_sq:
-            best_leaf, best_sq = _nearest_in_range(bvh, p, bvh.slot_first[far], bvh.slot_count[far], best_leaf,
-                                                   best_sq)
-        if not far_small and d_far <= best_sq:
-            nodes[count] = bvh.slot_child[far]
-            bounds[count] = d_far
-            count += 1
-        if not near_small and d_near <= best_sq:
-            nodes[count] = bvh.slot_child[near]
-            bounds[count] = d_near
-            count += 1
-    return best_leaf, best_sq, True
-
-
-@wp.func
-def nearest_leaf_within(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float, budget: int):
-    """Nearest leaf to p of those that beat (best_sq, best_leaf) (see `beats`), in at most `budget` node
-    visits: (best_leaf, best_sq, finished); (best_leaf, best_sq) stand if there is none."""
-    if bvh.internal_count == 0:
-        best_leaf, best_sq = _nearest_in_range(bvh, p, 0, 1, best_leaf, best_sq)
-        return best_leaf, best_sq, True
-    best_leaf, best_sq, finished = nearest_in_subtree(bvh, p, 0, best_leaf, best_sq, budget)
-    return best_leaf, best_sq, finished
-
-
-@wp.func
-def nearest_in_slot(bvh: BvhView, p: wp.vec3, slot: int, best_leaf: int, best_sq: float):
-    """Nearest leaf under the child held in `slot` (see BvhView) that beats (best_sq, best_leaf)."""
-    lower = load_vec4(bvh.slot_lower, slot)
-    if box_distance_sq(p, _xyz(lower), _xyz(load_vec4(bvh.slot_upper, slot))) > best_sq:
-        return best_leaf, best_sq
-    if lower[3] <= float(LEAF_SIZE):
-        return _nearest_in_range(bvh, p, bvh.slot_first[slot], bvh.slot_count[slot], best_leaf, best_sq)
-    best_leaf, best_sq, done = nearest_in_subtree(bvh, p, bvh.slot_child[slot], best_leaf, best_sq, UNLIMITED_VISITS)
-    return best_leaf, best_sq
-
-
-@wp.func
 def _plane_gaps(p: float, lower: wp.vec4, upper: wp.vec4) -> wp.vec4:
     """How far coordinate p lies outside each of four boxes' [lower, upper] along one axis."""
     return wp.vec4(wp.max(wp.max(lower[0] - p, p - upper[0]), 0.0), wp.max(wp.max(lower[1] - p, p - upper[1]), 0.0),
                    wp.max(wp.max(lower[2] - p, p - upper[2]), 0.0), wp.max(wp.max(lower[3] - p, p - upper[3]), 0.0))
+
+
+@wp.func
+def entry_distances_sq(bvh: BvhView, p: wp.vec3, node: int) -> wp.vec4:
+    """Squared distances from p to the four boxes of 4-wide node `node` (huge for an absent entry's empty box)."""
+    gap_x = _plane_gaps(p[0], load_vec4(bvh.wide_planes, 6 * node), load_vec4(bvh.wide_planes, 6 * node + 3))
+    gap_y = _plane_gaps(p[1], load_vec4(bvh.wide_planes, 6 * node + 1), load_vec4(bvh.wide_planes, 6 * node + 4))
+    gap_z = _plane_gaps(p[2], load_vec4(bvh.wide_planes, 6 * node + 2), load_vec4(bvh.wide_planes, 6 * node + 5))
+    d = wp.vec4()
+    for j in range(4):
+        d[j] = gap_x[j] * gap_x[j] + gap_y[j] * gap_y[j] + gap_z[j] * gap_z[j]
+    return d
 
 
 def _wide_searches(past_tied_boxes: bool):
@@ -557,27 +479,22 @@ def _wide_searches(past_tied_boxes: bool):
             if box_sq == best_sq:
                 first = -1 - entry
                 if entry >= 0:
-                    first = bvh.slot_first[bvh.wide_slot[4 * node + j]]
+                    first = bvh.wide_first[4 * node + j]
                 return first < best_leaf
         return box_sq <= best_sq
 
     may_hold = wp.func(may_hold, module="unique")
 
-    def nearest_leaf_wide(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float, budget: int):
-        """Nearest leaf to p of those that beat (best_sq, best_leaf) (see `beats`), over the 4-wide view, in at
+    def nearest_under(bvh: BvhView, p: wp.vec3, root: int, best_leaf: int, best_sq: float, budget: int):
+        """Nearest leaf under 4-wide node `root` of those that beat (best_sq, best_leaf) (see `beats`), in at
         most `budget` binary node visits (a 4-wide visit counts two): (best_leaf, best_sq, finished). It opens
         every box that may hold a better leaf, so it finds the least (value, leaf) whatever the order it walks
-        in: without the tie test, the answers of the binary tree's `nearest_leaf_within`. Triangles are tested first, then the nodes
-        pushed farthest first, so that the nearest is walked next. A node pushed before the best came to tie
-        with its box is still opened (its entries are tested against the tie), which only costs a visit."""
-        if bvh.internal_count == 0:
-            d_sq = leaf_sq(bvh, 0, p)
-            if beats(d_sq, 0, best_sq, best_leaf):
-                return 0, d_sq, True
-            return best_leaf, best_sq, True
+        in. Triangles are tested first, then the nodes pushed farthest first, so that the nearest is walked next.
+        A node pushed before the best came to tie with its box is still opened (its entries are tested against
+        the tie), which only costs a visit."""
         nodes = wide_stack_int()
         bounds = wide_stack_float()
-        nodes[0] = 0
+        nodes[0] = root
         bounds[0] = 0.0
         top = int(1)
         visits = int(0)
@@ -589,13 +506,9 @@ def _wide_searches(past_tied_boxes: bool):
                 return best_leaf, best_sq, False
             visits += 2
             node = nodes[top]
-            gap_x = _plane_gaps(p[0], load_vec4(bvh.wide_planes, 6 * node), load_vec4(bvh.wide_planes, 6 * node + 3))
-            gap_y = _plane_gaps(p[1], load_vec4(bvh.wide_planes, 6 * node + 1), load_vec4(bvh.wide_planes, 6 * node + 4))
-            gap_z = _plane_gaps(p[2], load_vec4(bvh.wide_planes, 6 * node + 2), load_vec4(bvh.wide_planes, 6 * node + 5))
-            d = wp.vec4()
+            d = entry_distances_sq(bvh, p, node)
             child = wp.vec4i()
             for j in range(4):
-                d[j] = gap_x[j] * gap_x[j] + gap_y[j] * gap_y[j] + gap_z[j] * gap_z[j]
                 child[j] = bvh.wide_child[4 * node + j]
             for j in range(4):
                 if child[j] < 0 and may_hold(bvh, d[j], node, j, child[j], best_sq, best_leaf):
@@ -622,32 +535,71 @@ def _wide_searches(past_tied_boxes: bool):
                     child[far] = NO_CHILD
         return best_leaf, best_sq, True
 
-    nearest_leaf_wide.__name__ = nearest_leaf_wide.__qualname__ = (
-        "nearest_leaf_wide_past_ties" if past_tied_boxes else "nearest_leaf_wide")
-    return wp.func(nearest_leaf_wide, module="unique")
+    suffix = "_past_ties" if past_tied_boxes else ""
+    nearest_under.__name__ = nearest_under.__qualname__ = "nearest_under" + suffix
+    nearest_under = wp.func(nearest_under, module="unique")
+
+    def nearest_leaf_wide(bvh: BvhView, p: wp.vec3, best_leaf: int, best_sq: float, budget: int):
+        """`nearest_under` the root: the nearest leaf of the whole tree that beats (best_sq, best_leaf)."""
+        if bvh.internal_count == 0:
+            d_sq = leaf_sq(bvh, 0, p)
+            if beats(d_sq, 0, best_sq, best_leaf):
+                return 0, d_sq, True
+            return best_leaf, best_sq, True
+        best_leaf, best_sq, finished = nearest_under(bvh, p, 0, best_leaf, best_sq, budget)
+        return best_leaf, best_sq, finished
+
+    nearest_leaf_wide.__name__ = nearest_leaf_wide.__qualname__ = "nearest_leaf_wide" + suffix
+    return nearest_under, wp.func(nearest_leaf_wide, module="unique")
 
 
 # the corner searches' and the queries' (see `_wide_searches` for why they differ)
-nearest_leaf_wide = _wide_searches(past_tied_boxes=False)
-nearest_leaf_past_ties = _wide_searches(past_tied_boxes=True)
+_nearest_under, nearest_leaf_wide = _wide_searches(past_tied_boxes=False)
+_, nearest_leaf_past_ties = _wide_searches(past_tied_boxes=True)
+
+
+@wp.func
+def nearest_in_entry(bvh: BvhView, p: wp.vec3, entry: int, best_leaf: int, best_sq: float):
+    """Nearest leaf under the 4-wide view's entry `entry` (4 k + j: node k's entry j) that beats (best_sq,
+    best_leaf), however long the walk: (best_leaf, best_sq)."""
+    node = entry // 4
+    if entry_distances_sq(bvh, p, node)[entry - 4 * node] > best_sq:
+        return best_leaf, best_sq
+    child = bvh.wide_child[entry]
+    if child < 0:
+        leaf = -1 - child
+        d_sq = leaf_distance_sq(bvh, leaf, p)
+        if beats(d_sq, leaf, best_sq, best_leaf):
+            return leaf, d_sq
+        return best_leaf, best_sq
+    best_leaf, best_sq, finished = _nearest_under(bvh, p, child, best_leaf, best_sq, UNLIMITED_VISITS)
+    return best_leaf, best_sq
 
 
 @wp.kernel(enable_backward=False)
-def _cut_slots(bvh: BvhView, levels: int, cut: wp.array(dtype=wp.int32)):
-    """Slot k of the tree's cut `levels` deep, -1 where a small subtree above that depth covers k."""
+def _cut_entries(bvh: BvhView, levels: int, cut: wp.array(dtype=wp.int32)):
+    """Entry k of the 4-wide view's cut `levels` of its levels deep (4^levels of them): the entry reached by
+    taking k's base-4 digits as entries from the root, -1 where that runs out of entries (a single triangle
+    above that depth keeps only the first k under it)."""
     k = wp.tid()
     node = int(0)
-    slot = int(-1)
     for level in range(levels):
-        if slot >= 0 and bvh.slot_count[slot] <= LEAF_SIZE:
-            # a small subtree stops the descent: only the first k under it keeps it
-            if (k & ((1 << (levels - level)) - 1)) != 0:
-                slot = -1
-            cut[k] = slot
+        entry = 4 * node + ((k >> (2 * (levels - 1 - level))) & 3)
+        child = bvh.wide_child[entry]
+        if child == NO_CHILD:
+            cut[k] = -1
             return
-        slot = 2 * node + ((k >> (levels - 1 - level)) & 1)
-        node = bvh.slot_child[slot]
-    cut[k] = slot
+        if level == levels - 1:
+            cut[k] = entry
+            return
+        if child < 0:
+            # a single triangle stops the descent: only the first k under it keeps it
+            if (k & ((1 << (2 * (levels - 1 - level))) - 1)) != 0:
+                entry = -1
+            cut[k] = entry
+            return
+        node = child
+    cut[k] = -1  # no levels: no entry
 
 
 @wp.func
@@ -890,14 +842,10 @@ def _child_moments(child: int, internal_count: int, triangles: wp.array(dtype=wp
 
 
 @wp.func
-def _merged_moments(node: int, lower_l: wp.vec4, upper_l: wp.vec4, lower_r: wp.vec4, upper_r: wp.vec4,
-                    slot_child: wp.array(dtype=wp.int32), internal_count: int, triangles: wp.array(dtype=wp.vec4),
-                    node_moments: wp.array(dtype=wp.vec4)):
-    """Node's winding moments from its two children's."""
-    centre_radius_l, normal_l, s0_l, s1_l = _child_moments(slot_child[2 * node], internal_count, triangles,
-                                                            node_moments)
-    centre_radius_r, normal_r, s0_r, s1_r = _child_moments(slot_child[2 * node + 1], internal_count, triangles,
-                                                            node_moments)
+def _merged_moments(centre_radius_l: wp.vec4, normal_l: wp.vec4, s0_l: wp.vec4, s1_l: wp.vec4, lower_l: wp.vec4,
+                    upper_l: wp.vec4, centre_radius_r: wp.vec4, normal_r: wp.vec4, s0_r: wp.vec4, s1_r: wp.vec4,
+                    lower_r: wp.vec4, upper_r: wp.vec4):
+    """A node's winding moments from its two children's moments and boxes."""
     total = normal_l[3] + normal_r[3]
     centre_l = _xyz(centre_radius_l)
     centre_r = _xyz(centre_radius_r)
@@ -911,20 +859,82 @@ def _merged_moments(node: int, lower_l: wp.vec4, upper_l: wp.vec4, lower_r: wp.v
     return wp.vec4(mid[0], mid[1], mid[2], radius), normal_l + normal_r, l0 + r0, l1 + r1
 
 
+@wp.func
+def _entry_box(planes: wp.array(dtype=wp.vec4), node: int, j: int):
+    """(lower, upper) of entry j of 4-wide node `node`, read from L2 (written in this launch); w is 0."""
+    lower = wp.vec4(0.0)
+    upper = wp.vec4(0.0)
+    for axis in range(3):
+        lower[axis] = load_coherent_vec4(planes, 6 * node + axis)[j]
+        upper[axis] = load_coherent_vec4(planes, 6 * node + 3 + axis)[j]
+    return lower, upper
+
+
+@wp.func
+def _side_moments(node: int, side: int, wide_node: int, entry: int, planes: wp.array(dtype=wp.vec4),
+                  slot_child: wp.array(dtype=wp.int32), internal_count: int, triangles: wp.array(dtype=wp.vec4),
+                  node_moments: wp.array(dtype=wp.vec4)):
+    """The moments and box of child `side` of binary node `node` (4-wide node `wide_node`), whose entries start at
+    its `entry`-th: a single triangle (one entry), or a binary node between it and two entries, whose moments are
+    merged and stored here. Returns those, and the entry after its own."""
+    child = slot_child[2 * node + side]
+    lower, upper = _entry_box(planes, wide_node, entry)
+    if child >= internal_count:
+        centre_radius, normal_area, s0, s1 = _child_moments(child, internal_count, triangles, node_moments)
+        return centre_radius, normal_area, s0, s1, lower, upper, entry + 1
+    lower_r, upper_r = _entry_box(planes, wide_node, entry + 1)
+    centre_radius_l, normal_l, s0_l, s1_l = _child_moments(slot_child[2 * child], internal_count, triangles,
+                                                            node_moments)
+    centre_radius_r, normal_r, s0_r, s1_r = _child_moments(slot_child[2 * child + 1], internal_count, triangles,
+                                                            node_moments)
+    centre_radius, normal_area, s0, s1 = _merged_moments(centre_radius_l, normal_l, s0_l, s1_l, lower, upper,
+                                                         centre_radius_r, normal_r, s0_r, s1_r, lower_r, upper_r)
+    node_moments[4 * child] = centre_radius
+    node_moments[4 * child + 1] = normal_area
+    node_moments[4 * child + 2] = s0
+    node_moments[4 * child + 3] = s1
+    return centre_radius, normal_area, s0, s1, wp.min(lower, lower_r), wp.max(upper, upper_r), entry + 2
+
+
+@wp.func_native("""
+float* values = reinterpret_cast<float*>(&planes.data[0]) + 24 * (entry / 4) + entry % 4;
+values[0] = lower[0];
+values[4] = lower[1];
+values[8] = lower[2];
+values[12] = upper[0];
+values[16] = upper[1];
+values[20] = upper[2];
+""")
+def _store_entry_box(planes: wp.array(dtype=wp.vec4), entry: int, lower: wp.vec3, upper: wp.vec3):
+    """Write a box into entry `entry` (4 k + j) of the planes: six floats, leaving the other entries' alone."""
+    ...
+
+
+@wp.func
+def _min4(v: wp.vec4) -> float:
+    return wp.min(wp.min(v[0], v[1]), wp.min(v[2], v[3]))
+
+
+@wp.func
+def _max4(v: wp.vec4) -> float:
+    return wp.max(wp.max(v[0], v[1]), wp.max(v[2], v[3]))
+
+
 @wp.kernel(enable_backward=False)
 def _refit(
     vertices: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=wp.vec3i),
     leaf_face: wp.array(dtype=wp.int32),
-    parent_slot: wp.array(dtype=wp.int32),
-    slot_count: wp.array(dtype=wp.int32),
+    leaf_entry: wp.array(dtype=wp.int32),
+    wide_up: wp.array(dtype=wp.int32),
+    wide_node: wp.array(dtype=wp.int32),
+    wide_child: wp.array(dtype=wp.int32),
     slot_child: wp.array(dtype=wp.int32),
     internal_count: int,
     with_moments: int,
-    slot_lower: wp.array(dtype=wp.vec4),
-    slot_upper: wp.array(dtype=wp.vec4),
     triangles: wp.array(dtype=wp.vec4),
-    visits: wp.array(dtype=wp.int32),
+    planes: wp.array(dtype=wp.vec4),
+    arrivals: wp.array(dtype=wp.int32),
     node_moments: wp.array(dtype=wp.vec4),
 ):
     k = wp.tid()
@@ -935,40 +945,45 @@ def _refit(
     triangles[3 * k] = wp.vec4(a[0], a[1], a[2], 0.0)
     triangles[3 * k + 1] = wp.vec4(b[0], b[1], b[2], 0.0)
     triangles[3 * k + 2] = wp.vec4(c[0], c[1], c[2], 0.0)
-    node = internal_count + k
+    if internal_count == 0:
+        return  # a single triangle, and no tree
     # a leaf's box grows by BOX_SLACK on every side, so its rounded distance from a point stays below the
     # triangle's, and no search prunes a triangle nearer than its bound (see BOX_SLACK)
     lower = wp.min(wp.min(a, b), c) - wp.vec3(_BOX_SLACK)
     upper = wp.max(wp.max(a, b), c) + wp.vec3(_BOX_SLACK)
-    # Walk up; each node's box goes into its slot in the parent, and an internal node's winding moments
-    # (see BvhView.node_moments) into their own place; the second child to arrive at a node merges both
-    # (Karras 2012). Writers fence before counting their arrival and the merger reads its children from L2,
-    # so no stale value is merged.
-    centre_radius = wp.vec4(0.0)
-    normal_area = wp.vec4(0.0)
-    moment_0 = wp.vec4(0.0)
-    moment_1 = wp.vec4(0.0)
-    slot = parent_slot[node]
-    while slot >= 0:
-        count = float(slot_count[slot])
-        slot_lower[slot] = wp.vec4(lower[0], lower[1], lower[2], count)
-        slot_upper[slot] = wp.vec4(upper[0], upper[1], upper[2], count)
-        if with_moments != 0 and node < internal_count:
-            node_moments[4 * node] = centre_radius
-            node_moments[4 * node + 1] = normal_area
-            node_moments[4 * node + 2] = moment_0
-            node_moments[4 * node + 3] = moment_1
+    # Walk up the 4-wide view; each box goes into its entry of the parent's planes, and the last of a node's entries
+    # to arrive merges them: the node's box, and the winding moments (see BvhView.node_moments) of its binary node
+    # and of the binary nodes between it and its entries, each from its two children's (Karras 2012, four children
+    # at a time). Writers fence before counting their arrival and the merger reads its entries from L2, so no stale
+    # value is merged.
+    entry = leaf_entry[k]
+    while entry >= 0:
+        _store_entry_box(planes, entry, lower, upper)
         thread_fence()
-        node = slot // 2
-        if wp.atomic_add(visits, node, 1) == 0:
+        node = entry // 4
+        present = int(0)
+        for j in range(4):
+            if wide_child[4 * node + j] != NO_CHILD:
+                present += 1
+        if wp.atomic_add(arrivals, node, 1) < present - 1:
             return
-        lower_0 = load_coherent_vec4(slot_lower, 2 * node)
-        lower_1 = load_coherent_vec4(slot_lower, 2 * node + 1)
-        upper_0 = load_coherent_vec4(slot_upper, 2 * node)
-        upper_1 = load_coherent_vec4(slot_upper, 2 * node + 1)
-        lower = wp.min(_xyz(lower_0), _xyz(lower_1))
-        upper = wp.max(_xyz(upper_0), _xyz(upper_1))
+        # an absent entry's box is empty (lower above upper), so it drops out of the union
+        lower = wp.vec3(_min4(load_coherent_vec4(planes, 6 * node)), _min4(load_coherent_vec4(planes, 6 * node + 1)),
+                        _min4(load_coherent_vec4(planes, 6 * node + 2)))
+        upper = wp.vec3(_max4(load_coherent_vec4(planes, 6 * node + 3)),
+                        _max4(load_coherent_vec4(planes, 6 * node + 4)),
+                        _max4(load_coherent_vec4(planes, 6 * node + 5)))
         if with_moments != 0:
-            centre_radius, normal_area, moment_0, moment_1 = _merged_moments(
-                node, lower_0, upper_0, lower_1, upper_1, slot_child, internal_count, triangles, node_moments)
-        slot = parent_slot[node]
+            binary = wide_node[node]
+            centre_radius_l, normal_l, s0_l, s1_l, lower_l, upper_l, after = _side_moments(
+                binary, 0, node, 0, planes, slot_child, internal_count, triangles, node_moments)
+            centre_radius_r, normal_r, s0_r, s1_r, lower_r, upper_r, _end = _side_moments(
+                binary, 1, node, after, planes, slot_child, internal_count, triangles, node_moments)
+            centre_radius, normal_area, s0, s1 = _merged_moments(
+                centre_radius_l, normal_l, s0_l, s1_l, lower_l, upper_l,
+                centre_radius_r, normal_r, s0_r, s1_r, lower_r, upper_r)
+            node_moments[4 * binary] = centre_radius
+            node_moments[4 * binary + 1] = normal_area
+            node_moments[4 * binary + 2] = s0
+            node_moments[4 * binary + 3] = s1
+        entry = wide_up[node]

@@ -19,7 +19,8 @@ from badf.server.adf._bvh import (
     leaf_distance_held_to_box_sq,
     leaf_distance_sq,
     leaf_triangle,
-    nearest_in_slot,
+    cut_bits,
+    nearest_in_entry,
     nearest_leaf_past_ties,
     nearest_leaf_wide,
     spatial_seed,
@@ -108,8 +109,9 @@ class SearchSplit:
     """How corner searches that run long are shared out (see CornerField.compute).
 
     A corner's search stops after `budget` node visits; the corners that stopped are searched again from
-    the bound they reached, by 2^levels threads each, one per subtree of the BVH's cut `levels` deep,
-    `groups` corners at a time. budget 0 searches every corner whole in one thread.
+    the bound they reached, by 2^levels threads each, one per subtree of the BVH's cut `levels` deep (rounded up
+    to even, as the cut is taken in the 4-wide view: `cut_bits`), `groups` corners at a time. budget 0 searches
+    every corner whole in one thread.
     """
 
     def __init__(self, budget: int, levels: int, groups: int):
@@ -238,9 +240,9 @@ class CornerField:
         beside = self._beside.fork() if by_winding or far_cells > 0 else None
         if far_cells > 0:
             levels, groups = _FAR_SPLIT
-            wp.launch(_split_searches, dim=groups << levels,
-                      inputs=[corner_keys, origin, cell, bvh, cuts(levels), levels, groups, far_count, far_capacity,
-                              far_corner, far_start],
+            wp.launch(_split_searches, dim=groups << cut_bits(levels),
+                      inputs=[corner_keys, origin, cell, bvh, cuts(levels), cut_bits(levels), groups, far_count,
+                              far_capacity, far_corner, far_start],
                       outputs=[far_best], device=self.device, stream=beside)
             wp.launch(_gather_split, dim=groups, inputs=[groups, far_count, far_capacity, far_corner, far_best],
                       outputs=[self.value, self.leaf], device=self.device, stream=beside)
@@ -254,9 +256,9 @@ class CornerField:
             block_dim=SEARCH_BLOCK_DIM,
         )
         if splitting:
-            ways = 1 << split.levels
-            wp.launch(_split_searches, dim=split.groups * ways,
-                      inputs=[corner_keys, origin, cell, bvh, cuts(split.levels), split.levels, split.groups,
+            bits = cut_bits(split.levels)
+            wp.launch(_split_searches, dim=split.groups << bits,
+                      inputs=[corner_keys, origin, cell, bvh, cuts(split.levels), bits, split.groups,
                               long_count, capacity, long_corner, long_start],
                       outputs=[long_best], device=self.device)
             wp.launch(_gather_split, dim=split.groups,
@@ -830,7 +832,7 @@ def _split_searches(
     cell: float,
     bvh: BvhView,
     cut: wp.array(dtype=wp.int32),
-    levels: int,
+    bits: int,
     groups: int,
     long_count: wp.array(dtype=wp.int32),
     listed: int,
@@ -838,19 +840,19 @@ def _split_searches(
     long_start: wp.array(dtype=wp.int64),
     long_best: wp.array(dtype=wp.int64),
 ):
-    """Thread (g, k) searches subtree k of the cut for the long corners g, g + groups, ... (of the first
+    """Thread (g, k) searches subtree k of the cut (2^bits entries) for the long corners g, g + groups, ... (of the first
     `listed` at most) from each one's (bound, leaf), and keeps the least (distance, leaf) per corner: the
     order of `beats`, which the packed minimum keeps too. Every thread starts from the same (bound, leaf),
     so the result does not depend on the order the threads run in."""
     t = wp.tid()
-    group = t >> levels
-    slot = cut[t - (group << levels)]
-    if slot < 0:
+    group = t >> bits
+    entry = cut[t - (group << bits)]
+    if entry < 0:
         return
     for item in range(group, wp.min(long_count[0], listed), groups):  # a dropped list counts -1
         p = _lattice_point(corner_keys[long_corner[item]], origin, cell)
         start_leaf = packed_leaf(long_start[item])
-        leaf, leaf_sq = nearest_in_slot(bvh, p, slot, start_leaf, packed_distance_sq(long_start[item]))
+        leaf, leaf_sq = nearest_in_entry(bvh, p, entry, start_leaf, packed_distance_sq(long_start[item]))
         if leaf != start_leaf:
             atomic_min_packed(long_best, item, pack_distance_leaf(leaf_sq, leaf))
 

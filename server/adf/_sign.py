@@ -15,7 +15,15 @@ import numpy as np
 import warp as wp
 
 from badf.server.adf._buffers import DeviceBuffers
-from badf.server.adf._bvh import LEAF_SIZE, BvhView, leaf_triangle, winding_number, winding_number_careful
+from badf.server.adf._bvh import (
+    NO_CHILD,
+    BvhView,
+    entry_distances_sq,
+    leaf_triangle,
+    wide_stack_int,
+    winding_number,
+    winding_number_careful,
+)
 from badf.server.adf._geometry import (
     EDGE_AB,
     EDGE_BC,
@@ -23,10 +31,7 @@ from badf.server.adf._geometry import (
     VERTEX_A,
     VERTEX_B,
     VERTEX_C,
-    box_distance_sq,
     closest_point_on_triangle,
-    load_vec4,
-    stack_int,
     triangle_distance_sq,
 )
 from badf.server.adf._tolerances import (
@@ -547,13 +552,11 @@ def lends_no_normal(a: wp.vec3, b: wp.vec3, c: wp.vec3, cross_length: float) -> 
 
 
 @wp.func
-def _leaves_read_inside(bvh: BvhView, sign: SignView, p: wp.vec3, first: int, count: int, reach_sq: float) -> bool:
-    for leaf in range(first, first + count):
-        a, b, c = leaf_triangle(bvh, leaf)
-        if triangle_distance_sq(p, a, b, c) <= reach_sq:
-            closest, feature = closest_point_on_triangle(p, a, b, c)
-            if wp.dot(p - closest, feature_normal(sign, bvh.leaf_face[leaf], feature)) < 0.0:
-                return True
+def _leaf_reads_inside(bvh: BvhView, sign: SignView, p: wp.vec3, leaf: int, reach_sq: float) -> bool:
+    a, b, c = leaf_triangle(bvh, leaf)
+    if triangle_distance_sq(p, a, b, c) <= reach_sq:
+        closest, feature = closest_point_on_triangle(p, a, b, c)
+        return wp.dot(p - closest, feature_normal(sign, bvh.leaf_face[leaf], feature)) < 0.0
     return False
 
 
@@ -562,23 +565,22 @@ def _reads_inside_by_a_face_within(bvh: BvhView, sign: SignView, p: wp.vec3, rea
     """Whether p lies on the inner side of the pseudonormal of its closest feature on any face within
     sqrt(reach_sq) of it (not only the nearest face, which a tie between coincident faces leaves to chance)."""
     if bvh.internal_count == 0:
-        return _leaves_read_inside(bvh, sign, p, 0, 1, reach_sq)  # a single triangle, and no tree
-    nodes = stack_int()
+        return _leaf_reads_inside(bvh, sign, p, 0, reach_sq)  # a single triangle, and no tree
+    nodes = wide_stack_int()
     nodes[0] = 0
     count = int(1)
     while count > 0:
         count -= 1
-        slot = 2 * nodes[count]
-        for side in range(2):
-            lower = load_vec4(bvh.slot_lower, slot + side)
-            upper = load_vec4(bvh.slot_upper, slot + side)
-            if box_distance_sq(p, wp.vec3(lower[0], lower[1], lower[2]), wp.vec3(upper[0], upper[1], upper[2])) <= reach_sq:
-                if lower[3] <= float(LEAF_SIZE):
-                    if _leaves_read_inside(bvh, sign, p, bvh.slot_first[slot + side], bvh.slot_count[slot + side],
-                                           reach_sq):
+        node = nodes[count]
+        d = entry_distances_sq(bvh, p, node)
+        for j in range(4):
+            child = bvh.wide_child[4 * node + j]
+            if child != NO_CHILD and d[j] <= reach_sq:
+                if child < 0:
+                    if _leaf_reads_inside(bvh, sign, p, -1 - child, reach_sq):
                         return True
                 else:
-                    nodes[count] = bvh.slot_child[slot + side]
+                    nodes[count] = child
                     count += 1
     return False
 
