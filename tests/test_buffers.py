@@ -74,6 +74,24 @@ def test_a_scratch_take_lays_its_arrays_apart_and_over_the_last_take(device, mon
     assert np.all(e.numpy() == 3) and np.all(f.numpy() == 4)
 
 
+def test_a_scratch_reserved_for_several_stages_holds_the_largest_without_growing(device, monkeypatch):
+    buffers = DeviceBuffers(wp.get_device(device))
+    scratch = SharedScratch("scratch", buffers)
+    small = ((100, wp.int32),)
+    large = ((1000, wp.int64), (1000, wp.int32))
+    scratch.reserve(small, large, ((10, wp.vec3),))
+    held = buffers.nbytes()
+    assert held == 8192 + 4096  # the largest stage: 8,000 and 4,000 bytes, each end aligned to 256
+    waits = []
+    monkeypatch.setattr(wp, "synchronize_device", lambda *args: waits.append(args))
+    for layout in (small, large, small):
+        arrays = scratch.take(*layout)
+        assert arrays[0].ptr == scratch._backing.ptr
+    assert buffers.nbytes() == held and not waits  # no stage grew it, so none waited for the device
+    scratch.reserve(small)  # a smaller reservation keeps what is held
+    assert buffers.nbytes() == held
+
+
 def test_fitting_sets_each_array_by_its_first_request_of_the_frame(device):
     """Within `fit`, an array's first request makes it anew at that size if it held more, and later requests
     only grow it, so each ends at the frame's largest; requests with headroom (query batches) keep theirs.

@@ -843,6 +843,37 @@ def test_a_first_frame_planned_from_the_area_equals_a_measured_one(device, monke
     assert held <= sum(measured.stats()["memory_bytes"].values())
 
 
+@pytest.mark.parametrize("name", ["spot", "stanford-bunny"])
+def test_a_planned_frame_allocates_the_octrees_scratch_once(device, monkeypatch, name):
+    """A planned frame reserves its largest stage's scratch up front. Before, a planned first frame (and the frame
+    after it, which fits the buffers to its plan) allocated the scratch three times, growing it at the radix
+    tree's stage and again at the corner set's, each time waiting for the device."""
+    from badf.server.adf._buffers import DeviceBuffers
+
+    allocated = []
+    allocate = DeviceBuffers._allocate
+
+    def counted(self, name, *args, **kwargs):
+        allocated.append(name)
+        return allocate(self, name, *args, **kwargs)
+
+    monkeypatch.setattr(DeviceBuffers, "_allocate", counted)
+    vertices, faces = meshes.load(name)
+    field = DistanceField(vertices, faces, depth=6, device=device)
+    assert field.stats()["measured_frames"] == 0  # planned from the area
+    per_frame = [allocated.count("oct.scratch")]
+    for k in range(1, 4):
+        allocated.clear()
+        field.update(vertices * np.float32(1.0 + 1e-3 * k))
+        per_frame.append(allocated.count("oct.scratch"))
+    # the second frame gives back what the first frame's estimate held beyond its plan: one allocation again
+    assert per_frame == [1, 1, 0, 0]
+    positions, values, _ = field.corner_samples()
+    sample = np.random.default_rng(0).choice(len(positions), 500, replace=False)
+    truth = oracle.signed_distance(positions[sample], vertices * np.float32(1.003), faces)
+    assert np.abs(values[sample] - truth).max() <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(vertices)
+
+
 def test_a_builds_arrays_are_given_back_once_frames_keep_the_domain(device):
     """What only a BVH build uses (the sort, the radix tree's links and the slots' ranges and parents) is freed on
     the first frame that keeps the domain; an object whose frames keep moving the domain keeps them, allocating

@@ -139,24 +139,37 @@ class SharedScratch:
 
     def take(self, *layout: tuple[int, type]) -> list[wp.array]:
         """Arrays of (count, dtype) each (at least one element), contents undefined, valid until the next take."""
-        offsets, end = [], 0
+        offsets = self._offsets(layout)
+        self._hold(offsets[-1] // _SCRATCH_ELEMENT)
+        base = self._backing.ptr
+        return [wp.array(ptr=base + offset, dtype=dtype, shape=(max(int(count), 1),), device=self.device)
+                for offset, (count, dtype) in zip(offsets, layout)]
+
+    def reserve(self, *layouts: tuple[tuple[int, type], ...]) -> None:
+        """Hold room for the largest of these stages' layouts (each as `take` gets it) at once, so that a frame
+        whose sizes are all planned grows the scratch, and waits for the device, once at most rather than at
+        each stage that needs more than the last."""
+        self._hold(max(self._offsets(layout)[-1] for layout in layouts) // _SCRATCH_ELEMENT)
+
+    def _offsets(self, layout) -> list[int]:
+        """Each array's byte offset in the allocation, and the end of the last."""
+        offsets = [0]
         for count, dtype in layout:
-            offsets.append(end)
-            end += -(-max(int(count), 1) * wp.types.type_size_in_bytes(dtype) // self._ALIGN) * self._ALIGN
+            offsets.append(offsets[-1] + -(-max(int(count), 1) * wp.types.type_size_in_bytes(dtype) // self._ALIGN)
+                           * self._ALIGN)
+        return offsets
+
+    def _hold(self, elements: int) -> None:
         # 16-byte elements, so the allocation may pass 2 GiB within Warp's int32 shapes (ends are aligned)
-        elements = end // _SCRATCH_ELEMENT
         grows = self._backing is not None and self._backing.shape[0] < elements
         if grows and self.device.is_cuda and self.device.is_capturing:
             raise RuntimeError(f"{self.name}: a stage outgrew its scratch while a graph was captured")
-        # every take is a request of the named buffer, so `DeviceBuffers.fit` treats the scratch as any other
+        # every request is one of the named buffer, so `DeviceBuffers.fit` treats the scratch as any other
         backing = self.buffers.ensure(self.name, elements, wp.vec4)
         if backing is not self._backing:
             if self._backing is not None:
                 wp.synchronize_device(self.device)  # before the old allocation's last reference goes
             self._backing = backing
-        base = self._backing.ptr
-        return [wp.array(ptr=base + offset, dtype=dtype, shape=(max(int(count), 1),), device=self.device)
-                for offset, (count, dtype) in zip(offsets, layout)]
 
 
 class SideStream:

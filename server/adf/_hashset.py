@@ -116,13 +116,20 @@ class HashSet:
                 return count
             expected = 2 * max(count, expected)
 
-    def _reset(self, expected: int) -> HashSetView:
+    @staticmethod
+    def scratch_layout(expected: int) -> tuple[tuple[int, type], ...]:
+        """What a set expecting that many keys takes from the scratch: its table, and the listed slots, which hold
+        twice the list, as radix_sort_pairs needs (the listed keys are sorted in the spent table, which is as
+        long: sort_listed)."""
         capacity = max(2 * expected, _MIN_CAPACITY)
+        return (capacity, wp.int64), (capacity, wp.int32)
+
+    def _reset(self, expected: int) -> HashSetView:
+        layout = self.scratch_layout(expected)
+        capacity = layout[0][0]
         b = self.buffers
         view = HashSetView()
-        # the listed slots hold twice the list, as radix_sort_pairs needs; the listed keys are sorted in the
-        # spent table, which is as long (sort_listed)
-        view.keys, view.listed_slots = self.scratch.take((capacity, wp.int64), (capacity, wp.int32))
+        view.keys, view.listed_slots = self.scratch.take(*layout)
         view.keys.fill_(-1)
         view.capacity = capacity
         view.list_capacity = capacity // 2

@@ -199,6 +199,8 @@ class Octree:
 
     def build(self, vertices: wp.array, faces: wp.array, face_count: int, origin: wp.vec3, side: float, clock,
               *, measure: bool) -> None:
+        if not measure:
+            self._reserve_scratch()
         with clock.stage("surface_cells"):
             cell_keys = self._surface_cells(vertices, faces, face_count, origin, side, measure)
         with clock.stage("octree"):
@@ -206,6 +208,14 @@ class Octree:
             self._link_children()
         with clock.stage("corners"):
             self._corners(measure)
+
+    def _reserve_scratch(self) -> None:
+        """A planned frame knows every stage's sizes: its scratch takes the largest stage's room up front. A first
+        frame then grows it once, where it grew at the radix tree's stage and again at the corner set's, each time
+        waiting for the device."""
+        cells = HashSet.scratch_layout(self.cell_set.planned)
+        self.scratch.reserve(cells, self._tree_layout(cells[0][0] // 2), self._node_sort_layout(),
+                             self._link_layout(), HashSet.scratch_layout(self.corner_set.planned))
 
     @property
     def corner_capacity(self) -> int:
@@ -304,9 +314,7 @@ class Octree:
         capacity = self.cell_set.list_capacity
         tree_nodes = 2 * capacity - 1
         # the cell set's table and slots are dead: the radix tree and its edges' counts take their place
-        parent, left, right, first, prefix, counts, offsets = self.scratch.take(
-            (tree_nodes, wp.int32), (capacity, wp.int32), (capacity, wp.int32), (capacity, wp.int32),
-            (capacity, wp.int32), (tree_nodes, wp.int32), (tree_nodes, wp.int32))
+        parent, left, right, first, prefix, counts, offsets = self.scratch.take(*self._tree_layout(capacity))
         link_radix_tree(cell_keys, self.cell_count, capacity, parent, left, right, first, prefix)
 
         wp.launch(_count_octree_nodes, dim=tree_nodes, inputs=[parent, prefix, self.cell_count, capacity, d],
@@ -326,17 +334,32 @@ class Octree:
         # The radix tree is dead by now: the sort runs in the scratch, with the room for twice the count that
         # radix_sort_pairs needs, and the sorted keys are copied back (the node keys outlive the frame; their
         # room would be 1.4 MB for the bunny). The sort's values are not used.
-        room, values = self.scratch.take((2 * self.node_capacity, wp.int64), (2 * self.node_capacity, wp.int32))
+        room, values = self.scratch.take(*self._node_sort_layout())
         wp.copy(room, node_keys, count=self.node_capacity)
         wp.utils.radix_sort_pairs(room, values, self.node_capacity, end_bit=LEVEL_SHIFT + 4)
         wp.copy(node_keys, room, count=self.node_capacity)
         self.node_keys = node_keys
 
+    @staticmethod
+    def _tree_layout(capacity: int) -> tuple[tuple[int, type], ...]:
+        """The radix tree over `capacity` cells (parent, left, right, first, prefix) and its edges' counts and
+        offsets, in the scratch."""
+        tree_nodes = 2 * capacity - 1
+        return ((tree_nodes, wp.int32), (capacity, wp.int32), (capacity, wp.int32), (capacity, wp.int32),
+                (capacity, wp.int32), (tree_nodes, wp.int32), (tree_nodes, wp.int32))
+
+    def _node_sort_layout(self) -> tuple[tuple[int, type], ...]:
+        return (2 * self.node_capacity, wp.int64), (2 * self.node_capacity, wp.int32)
+
     # -- stage 3: child masks and first children ----------------------------------------------------------
+    def _link_layout(self) -> tuple[tuple[int, type], ...]:
+        """The first-child flags and their scan, over the planned nodes."""
+        return (self.node_capacity, wp.int32), (self.node_capacity, wp.int32)
+
     def _link_children(self) -> None:
         b = self.buffers
         nodes, internal = self.node_capacity, self.internal_capacity
-        flags, scan = self.scratch.take((nodes, wp.int32), (nodes, wp.int32))
+        flags, scan = self.scratch.take(*self._link_layout())
         self.child_mask = b.ensure("oct.child_mask", internal, wp.int32)
         self.first_child = b.ensure("oct.first_child", internal, wp.int32)
         self.child_mask.zero_()
