@@ -1,6 +1,7 @@
 """What the probes share: a coherent update of a mesh at depth 7 whose corner-search launch is captured,
 so a probe can launch its own variant of the search over exactly the engine's inputs."""
 
+import argparse
 import time
 
 import numpy as np
@@ -73,3 +74,23 @@ def engine_search(inputs: list, capacity: int, distance: wp.array, nearest: wp.a
                   block_dim=_distance.SEARCH_BLOCK_DIM)
 
     return launch
+
+
+def alternating_parser(doc: str) -> argparse.ArgumentParser:
+    """The options of a probe that alternates two ways of building over meshes (probe_first_plan, probe_reserve)."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+    parser.add_argument("--mesh", nargs="+", required=True)
+    parser.add_argument("--depth", type=int, default=7)
+    parser.add_argument("--rounds", type=int, default=30)
+    parser.add_argument("--device", default=None)
+    parser.add_argument("--out")
+    return parser
+
+
+def quartiles(values: list[float]) -> list[float]:
+    q = np.percentile(np.asarray(values, float), [25, 50, 75])
+    return [round(float(q[0]), 4), round(float(q[1]), 4), round(float(q[2]), 4)]
+
+
+def fmt_quartiles(q: list[float]) -> str:
+    return f"{q[1]:.3f} [{q[0]:.3f}, {q[2]:.3f}]"

@@ -9,19 +9,17 @@ device time (the engine's own stage clock) by stage, and of its wall time.
     python bench/probes/probe_first_plan.py --mesh MESH.npz [MESH.npz ...] --depth 7 --rounds 30 [--out F.json]
 """
 
-import argparse
 import json
+import sys
 
 import numpy as np
 
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from _capture import alternating_parser, fmt_quartiles, quartiles  # noqa: E402
+
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--mesh", nargs="+", required=True)
-    parser.add_argument("--depth", type=int, default=7)
-    parser.add_argument("--rounds", type=int, default=30)
-    parser.add_argument("--device", default=None)
-    parser.add_argument("--out")
+    parser = alternating_parser(__doc__)
     args = parser.parse_args()
 
     import time
@@ -60,25 +58,17 @@ def main() -> None:
         print(f"{name}, depth {args.depth}, {args.rounds} builds each way on {report['device']} (ms: median [p25, p75])")
         for way, got in samples.items():
             stage_names = got["stages"][0].keys()
-            row = {s: _quartiles([t.get(s, 0.0) for t in got["stages"]]) for s in stage_names}
-            row["wall"] = _quartiles(got["wall"])
+            row = {s: quartiles([t.get(s, 0.0) for t in got["stages"]]) for s in stage_names}
+            row["wall"] = quartiles(got["wall"])
             row["measured_frames"] = sorted(set(got["measured_frames"]))
             rows[way] = row
-            print(f"  {way:<9} total {_fmt(row['total'])}  wall {_fmt(row['wall'])}  measured frames {row['measured_frames']}")
+            print(f"  {way:<9} total {fmt_quartiles(row['total'])}  wall {fmt_quartiles(row['wall'])}  "
+                  f"measured frames {row['measured_frames']}")
             print("            " + "  ".join(f"{s} {row[s][1]:.3f}" for s in stage_names if s != "total"))
         report["meshes"][name] = rows
     if args.out:
         with open(args.out, "w") as out:
             json.dump(report, out, indent=1)
-
-
-def _quartiles(values: list[float]) -> list[float]:
-    q = np.percentile(np.asarray(values, float), [25, 50, 75])
-    return [round(float(q[0]), 4), round(float(q[1]), 4), round(float(q[2]), 4)]
-
-
-def _fmt(q: list[float]) -> str:
-    return f"{q[1]:.3f} [{q[0]:.3f}, {q[2]:.3f}]"
 
 
 if __name__ == "__main__":

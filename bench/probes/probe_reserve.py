@@ -10,21 +10,19 @@ and quartiles of the engine's own stage clock (device time), by stage.
     python bench/probes/probe_reserve.py --mesh MESH.npz [MESH.npz ...] --depth 7 --rounds 30 [--out F.json]
 """
 
-import argparse
 import json
+import sys
 import time
 
 import numpy as np
 
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from _capture import alternating_parser, fmt_quartiles, quartiles  # noqa: E402
+
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--mesh", nargs="+", required=True)
-    parser.add_argument("--depth", type=int, default=7)
-    parser.add_argument("--rounds", type=int, default=30)
+    parser = alternating_parser(__doc__)
     parser.add_argument("--moves", type=int, default=5)
-    parser.add_argument("--device", default=None)
-    parser.add_argument("--out")
     args = parser.parse_args()
 
     import warp as wp
@@ -69,27 +67,19 @@ def main() -> None:
         rows = {}
         print(f"{name}, depth {args.depth}, {args.rounds} rounds each way on {report['device']} (ms: median [p25, p75])")
         for way, got in samples.items():
-            row = {kind: {s: _quartiles([t.get(s, 0.0) for t in got[kind]]) for s in got[kind][0]}
+            row = {kind: {s: quartiles([t.get(s, 0.0) for t in got[kind]]) for s in got[kind][0]}
                    for kind in ("build", "moving")}
-            row["exact_wall_ms"] = _quartiles(got["exact_ms"])
+            row["exact_wall_ms"] = quartiles(got["exact_ms"])
             rows[way] = row
-            print(f"  {way:<9} build {_fmt(row['build']['total'])}  moving frame {_fmt(row['moving']['total'])}  "
-                  f"exact queries (wall) {_fmt(row['exact_wall_ms'])}")
+            print(f"  {way:<9} build {fmt_quartiles(row['build']['total'])}  "
+                  f"moving frame {fmt_quartiles(row['moving']['total'])}  "
+                  f"exact queries (wall) {fmt_quartiles(row['exact_wall_ms'])}")
             for kind in ("build", "moving"):
                 print(f"    {kind:<7} " + "  ".join(f"{s} {q[1]:.3f}" for s, q in row[kind].items() if s != "total"))
         report["meshes"][name] = rows
     if args.out:
         with open(args.out, "w") as out:
             json.dump(report, out, indent=1)
-
-
-def _quartiles(values: list[float]) -> list[float]:
-    q = np.percentile(np.asarray(values, float), [25, 50, 75])
-    return [round(float(q[0]), 4), round(float(q[1]), 4), round(float(q[2]), 4)]
-
-
-def _fmt(q: list[float]) -> str:
-    return f"{q[1]:.3f} [{q[0]:.3f}, {q[2]:.3f}]"
 
 
 if __name__ == "__main__":

@@ -840,10 +840,10 @@ def _split_searches(
     long_start: wp.array(dtype=wp.int64),
     long_best: wp.array(dtype=wp.int64),
 ):
-    """Thread (g, k) searches subtree k of the cut (2^bits entries) for the long corners g, g + groups, ... (of the first
-    `listed` at most) from each one's (bound, leaf), and keeps the least (distance, leaf) per corner: the
-    order of `beats`, which the packed minimum keeps too. Every thread starts from the same (bound, leaf),
-    so the result does not depend on the order the threads run in."""
+    """Thread (g, k) searches subtree k of the cut (2^bits entries of the 4-wide view) for the long corners g,
+    g + groups, ... (of the first `listed` at most) from each one's (bound, leaf), and keeps the least (distance,
+    leaf) per corner: the order of `beats`, which the packed minimum keeps too. Every thread starts from the same
+    (bound, leaf), so the result does not depend on the order the threads run in."""
     t = wp.tid()
     group = t >> bits
     entry = cut[t - (group << bits)]
