@@ -104,7 +104,7 @@ class BvhView:
     # (>= 0), a single triangle's leaf (-1 - leaf), or NO_CHILD. Node 0 is the root.
     wide_planes: wp.array(dtype=wp.vec4)
     wide_child: wp.array(dtype=wp.int32)
-    wide_first: wp.array(dtype=wp.int32)  # the first leaf under each entry (the queries' tie test)
+    wide_first: wp.array(dtype=wp.int32)  # the first leaf under each 4-wide node (the queries' tie test)
 
 
 class Bvh:
@@ -256,7 +256,7 @@ class WideTree:
         self.device = buffers.device
         b = buffers
         self.child = b.array("bvh.wide.child", 4 * self.capacity, wp.int32)
-        self.first = b.array("bvh.wide.first", 4 * self.capacity, wp.int32)
+        self.first = b.array("bvh.wide.first", self.capacity, wp.int32)
         self.planes = b.array("bvh.wide.planes", 6 * self.capacity, wp.vec4)
         # the refit's: each node's binary node, the entry that holds it in its parent (-1 for the root), each
         # leaf's entry, and how many of each node's entries have arrived
@@ -324,13 +324,13 @@ def _link_entry(entry: int, slot: int, rank: wp.array(dtype=wp.int32), slot_chil
                 wide_up: wp.array(dtype=wp.int32), leaf_entry: wp.array(dtype=wp.int32)):
     """Entry `entry` of the view holds binary slot `slot`: a single triangle, or an even-depth node."""
     first = slot_first[slot]
-    wide_first[entry] = first
     if slot_count[slot] <= LEAF_SIZE:
         wide_child[entry] = -1 - first
         leaf_entry[first] = entry
     else:
         child = rank[slot_child[slot]]
         wide_child[entry] = child
+        wide_first[child] = first
         wide_up[child] = entry
 
 
@@ -472,14 +472,15 @@ def _wide_searches(past_tied_boxes: bool):
 
     leaf_sq = wp.func(leaf_sq, module="unique")
 
-    def may_hold(bvh: BvhView, box_sq: float, node: int, j: int, entry: int, best_sq: float, best_leaf: int) -> bool:
-        """Whether entry j of 4-wide node `node`, whose box lies box_sq from the point, may hold a leaf that beats
-        the best: a box nearer than it, or exactly as near (with a leaf of lower index under it)."""
+    def may_hold(bvh: BvhView, box_sq: float, child: int, best_sq: float, best_leaf: int) -> bool:
+        """Whether an entry holding `child` (a 4-wide node, or -1 - leaf), whose box lies box_sq from the point,
+        may hold a leaf that beats the best: a box nearer than it, or exactly as near (with a leaf of lower index
+        under it)."""
         if wp.static(past_tied_boxes):
             if box_sq == best_sq:
-                first = -1 - entry
-                if entry >= 0:
-                    first = bvh.wide_first[4 * node + j]
+                first = -1 - child
+                if child >= 0:
+                    first = bvh.wide_first[child]
                 return first < best_leaf
         return box_sq <= best_sq
 
@@ -511,7 +512,7 @@ def _wide_searches(past_tied_boxes: bool):
             for j in range(4):
                 child[j] = bvh.wide_child[4 * node + j]
             for j in range(4):
-                if child[j] < 0 and may_hold(bvh, d[j], node, j, child[j], best_sq, best_leaf):
+                if child[j] < 0 and may_hold(bvh, d[j], child[j], best_sq, best_leaf):
                     leaf = -1 - child[j]
                     d_sq = leaf_sq(bvh, leaf, p)
                     if beats(d_sq, leaf, best_sq, best_leaf):
@@ -519,7 +520,7 @@ def _wide_searches(past_tied_boxes: bool):
                         best_leaf = leaf
             for j in range(4):
                 if child[j] >= 0 and child[j] != NO_CHILD:
-                    if not may_hold(bvh, d[j], node, j, child[j], best_sq, best_leaf):
+                    if not may_hold(bvh, d[j], child[j], best_sq, best_leaf):
                         child[j] = NO_CHILD
             for _push in range(4):
                 far = int(-1)
