@@ -1010,6 +1010,47 @@ def test_far_corners_searched_by_subtree_give_the_same_field(device, name, band)
         assert np.all(tie <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frame))
 
 
+def test_the_corner_stages_lists_live_in_the_octrees_spent_scratch(device, monkeypatch):
+    """The long searches' and far corners' lists, the seeds and the winding numbers' verdicts are laid over the
+    octree's scratch once the corners are listed, and a planned frame reserves room for them: none is a buffer of
+    its own, frames after the first two allocate no scratch, and the field equals one searched whole."""
+    from badf.server.adf._buffers import DeviceBuffers
+    from badf.server.adf._distance import SearchSplit
+
+    allocated = []
+    allocate = DeviceBuffers._allocate
+
+    def counted(self, name, *args, **kwargs):
+        allocated.append(name)
+        return allocate(self, name, *args, **kwargs)
+
+    monkeypatch.setattr(DeviceBuffers, "_allocate", counted)
+    vertices, faces = meshes.load("spot")
+    whole = DistanceField(vertices, faces, depth=5, sign="winding", device=device)
+    shared = DistanceField(vertices, faces, depth=5, sign="winding", device=device)
+    whole._corners.split, whole._corners.far_cells = SearchSplit(0, 1, 1), 0
+    shared._corners.split, shared._corners.far_cells = SearchSplit(4, 6, 64), 2
+    extent = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
+    frames = [vertices * np.float32(1.0 + 0.01 * k) for k in range(1, 5)] + [vertices + np.float32(2.0 * extent)]
+    for k, frame in enumerate(frames):
+        whole.update(frame)
+        allocated.clear()
+        shared.update(frame)
+        if k >= 2:
+            assert "oct.scratch" not in allocated, f"frame {k + 2} grew the scratch"
+        assert shared._corners.long_searches() > 0 and shared._corners.far_corners() != 0
+        _, expected, _ = whole.corner_samples()
+        _, got, _ = shared.corner_samples()
+        if device == "cpu":
+            np.testing.assert_array_equal(got, expected)
+        else:  # CUDA may compile a triangle's arithmetic differently into the split and whole search kernels
+            assert np.all(np.abs(got - expected) <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frame))
+            assert np.array_equal(np.sign(got), np.sign(expected))
+    own = {"corner.long_corner", "corner.long_start", "corner.long_best", "corner.inside", "corner.seeds",
+           "corner.far_corner", "corner.far_start", "corner.far_best"}
+    assert not own & set(shared._buffers._arrays)
+
+
 def test_a_failed_graph_capture_falls_back_to_kernel_by_kernel(device, monkeypatch, caplog):
     """Where CUDA graphs cannot be captured, planned frames run kernel by kernel and answer the same."""
     if not device.startswith("cuda"):

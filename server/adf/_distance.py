@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from badf.server.adf._buffers import DeviceBuffers, SideStream
+from badf.server.adf._buffers import DeviceBuffers, SharedScratch, SideStream
 from badf.server.adf._bvh import (
     UNLIMITED_VISITS,
     BvhView,
@@ -161,8 +161,11 @@ class CornerField:
     # other corners (list_far_corners); 0: off; None: chosen by far_cells_for.
     far_cells: int | None = None
 
-    def __init__(self, buffers: DeviceBuffers):
+    def __init__(self, buffers: DeviceBuffers, scratch: SharedScratch):
+        """`scratch` is the octree's, which is spent once the corners are listed: the frame's own arrays (the long
+        searches' and far corners' lists, the winding numbers' verdicts) are laid over it."""
         self.buffers = buffers
+        self.scratch = scratch
         self.device = buffers.device
         self.value: wp.array | None = None
         self.leaf: wp.array | None = None
@@ -210,28 +213,22 @@ class CornerField:
         split = self.planned_split(expected_count, bvh.internal_count)
         self._last_split = split
         splitting = split.budget > 0
+        by_winding = sign.method == SIGN_WINDING
+        far_cells = self.far_cells_for(sign.method) if bvh.internal_count > 0 else 0
+        self._last_far_cells = far_cells
+        long_corner, long_start, long_best, inside, seeds, far_corner, far_start, far_best = self.scratch.take(
+            *self.scratch_layout(capacity, expected_count, bvh.internal_count, sign.method))
         long_count = b.ensure("corner.long_count", 1, wp.int32)
-        long_corner = b.ensure("corner.long_corner", capacity if splitting else 1, wp.int32)
-        long_start = b.ensure("corner.long_start", capacity if splitting else 1, wp.int64)
-        long_best = b.ensure("corner.long_best", capacity if splitting else 1, wp.int64)
         if splitting:
             long_count.zero_()
-        by_winding = sign.method == SIGN_WINDING
-        inside = b.ensure("corner.inside", capacity if by_winding else 1, wp.uint8)
         seeding = [corner_keys, count, capacity, origin, cell, 1.0 / side, depth, bvh, band or 0.0,
                    1 if use_previous else 0, self._previous_keys, self._previous_face, self._previous_count,
                    self._previous_capacity, previous_origin, 1.0 / previous_cell]
-        far_cells = self.far_cells_for(sign.method) if bvh.internal_count > 0 else 0
-        self._last_far_cells = far_cells
-        seeds = b.ensure("corner.seeds", capacity if far_cells > 0 else 1, wp.int32)
         if far_cells > 0:
             # corners far from the surface, listed with their seeds' bounds and searched by subtree beside the
             # others, from the start of the stage (their single walks would be the launch's longest)
-            far_capacity = max(1, capacity // FAR_LIST_FRACTION)
+            far_capacity = far_corner.shape[0]
             far_count = b.ensure("corner.far_count", 1, wp.int32)
-            far_corner = b.ensure("corner.far_corner", far_capacity, wp.int32)
-            far_start = b.ensure("corner.far_start", far_capacity, wp.int64)
-            far_best = b.ensure("corner.far_best", far_capacity, wp.int64)
             far_count.zero_()
             wp.launch(list_far_corners, dim=capacity, inputs=[*seeding, (far_cells * cell) ** 2, far_capacity],
                       outputs=[seeds, self.value, self.leaf, far_count, far_corner, far_start, far_best],
@@ -299,6 +296,19 @@ class CornerField:
                   device=self.device)
         wp.copy(self._previous_count, count, count=1)
         self._previous_capacity, self._previous_centre, self._previous_side = capacity, centre, side
+
+    def scratch_layout(self, capacity: int, expected_count: int, internal_count: int,
+                       sign_method: int) -> tuple[tuple[int, type], ...]:
+        """The arrays `compute` takes from the scratch for this many corners: the long searches' corners, starts and
+        bests (where searches are split), the winding numbers' verdicts (where they sign), the seeds and the far
+        corners' list (where far corners are searched by subtree); one element where unused."""
+        splitting = self.planned_split(expected_count, internal_count).budget > 0
+        far = self.far_cells_for(sign_method) > 0 and internal_count > 0
+        listed = capacity if splitting else 1
+        far_listed = max(1, capacity // FAR_LIST_FRACTION) if far else 1
+        return ((listed, wp.int32), (listed, wp.int64), (listed, wp.int64),
+                (capacity if sign_method == SIGN_WINDING else 1, wp.uint8), (capacity if far else 1, wp.int32),
+                (far_listed, wp.int32), (far_listed, wp.int64), (far_listed, wp.int64))
 
     def planned_split(self, expected_count: int, internal_count: int) -> SearchSplit:
         """The split `compute` will use for this many corners (its override, else the automatic choice)."""

@@ -390,7 +390,7 @@ class DistanceField:
         self._octree = Octree(self._depth, self._refine, self._halo, b)
         self._octree.surface_area = area
         self._normals = Pseudonormals(self._sign, self._topology, self._faces, b)
-        self._corners = CornerField(b)
+        self._corners = CornerField(b, self._octree.scratch)
         self._points = PointQuery(b)
         self._slice_cells = SliceCells(b)
         # the first frame is planned from the surface's area where the octree can estimate it, and measured
@@ -739,7 +739,11 @@ class DistanceField:
         o = self._octree
         if self._region is not None:  # in local coordinates, which follow the domain
             o.set_region(self._domain.to_local_float64(self._region), origin, side)
-        o.build(self._vertices, self._faces, self._face_count, origin, side, clock, measure=measure)
+        # a planned frame reserves the scratch for the corners' own arrays too, which are laid over it once the
+        # octree is built
+        corners = () if measure else (self._corners.scratch_layout(o.planned_corner_capacity(), o.corner_count,
+                                                                   self._bvh.internal_count, self._normals.code),)
+        o.build(self._vertices, self._faces, self._face_count, origin, side, clock, measure=measure, reserve=corners)
         self._beside.join(beside)
         with clock.stage("distances"):
             self._corners.compute(o.corner_keys, o.corner_set.view.count, o.corner_capacity, o.corner_count,

@@ -198,9 +198,11 @@ class Octree:
         self.region_box = (wp.vec3(*lower.tolist()), wp.vec3(*upper.tolist()))
 
     def build(self, vertices: wp.array, faces: wp.array, face_count: int, origin: wp.vec3, side: float, clock,
-              *, measure: bool) -> None:
+              *, measure: bool, reserve: tuple = ()) -> None:
+        """The octree of one frame; a planned frame first reserves the scratch for its stages and for the
+        layouts in `reserve` (what its owner lays over the scratch after it)."""
         if not measure:
-            self._reserve_scratch()
+            self._reserve_scratch(*reserve)
         with clock.stage("surface_cells"):
             cell_keys = self._surface_cells(vertices, faces, face_count, origin, side, measure)
         with clock.stage("octree"):
@@ -209,13 +211,17 @@ class Octree:
         with clock.stage("corners"):
             self._corners(measure)
 
-    def _reserve_scratch(self) -> None:
-        """A planned frame knows every stage's sizes: its scratch takes the largest stage's room up front. A first
-        frame then grows it once, where it grew at the radix tree's stage and again at the corner set's, each time
-        waiting for the device."""
+    def _reserve_scratch(self, *after: tuple[tuple[int, type], ...]) -> None:
+        """A planned frame knows every stage's sizes: its scratch takes the largest stage's room up front, with the
+        layouts `after` its owner takes from it later in the frame. A first frame then grows it once, where it grew
+        at the radix tree's stage and again at the corner set's, each time waiting for the device."""
         cells = HashSet.scratch_layout(self.cell_set.planned)
         self.scratch.reserve(cells, self._tree_layout(cells[0][0] // 2), self._node_sort_layout(),
-                             self._link_layout(), HashSet.scratch_layout(self.corner_set.planned))
+                             self._link_layout(), HashSet.scratch_layout(self.corner_set.planned), *after)
+
+    def planned_corner_capacity(self) -> int:
+        """The corner list's capacity in a planned frame (`corner_capacity` once the frame has listed them)."""
+        return HashSet.scratch_layout(self.corner_set.planned)[0][0] // 2
 
     @property
     def corner_capacity(self) -> int:
