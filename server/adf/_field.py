@@ -685,13 +685,10 @@ class DistanceField:
                 # through a pinned buffer, so the copy runs asynchronously (a pageable one waits for it)
                 host = self._staging
                 host.numpy()[:] = local_vertices
-                if recentre:
-                    raw = self._buffers.ensure("mesh.frame", len(local_vertices), wp.vec3)
-                    wp.copy(raw, host)
+                wp.copy(self._vertices, host)
+                if recentre:  # in place: each thread reads and writes its own vertex
                     wp.launch(_recentre, dim=len(local_vertices),
-                              inputs=[raw, wp.vec3(*self._domain.centre), self._domain.scale], outputs=[self._vertices])
-                else:
-                    wp.copy(self._vertices, host)
+                              inputs=[self._vertices, wp.vec3(*self._domain.centre), self._domain.scale])
                 self._normals.upload_extent(extent)
             fits = self._planned and self._planned_frame(domain_moved)
             if not fits:
@@ -854,9 +851,10 @@ class DistanceField:
 
 
 @wp.kernel(enable_backward=False)
-def _recentre(frame: wp.array(dtype=wp.vec3), centre: wp.vec3, scale: float, local: wp.array(dtype=wp.vec3)):
+def _recentre(vertices: wp.array(dtype=wp.vec3), centre: wp.vec3, scale: float):
+    """World float32 positions to local coordinates, in place."""
     i = wp.tid()
-    local[i] = (frame[i] - centre) * scale
+    vertices[i] = (vertices[i] - centre) * scale
 
 
 def _to_world_units(local: np.ndarray, scale: float) -> None:
