@@ -1010,10 +1010,12 @@ def test_far_corners_searched_by_subtree_give_the_same_field(device, name, band)
         assert np.all(tie <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frame))
 
 
-def test_the_corner_stages_lists_live_in_the_octrees_spent_scratch(device, monkeypatch):
+def test_arrays_that_live_within_a_stage_are_laid_over_the_octrees_scratch(device, monkeypatch):
     """The long searches' and far corners' lists, the seeds and the winding numbers' verdicts are laid over the
-    octree's scratch once the corners are listed, and a planned frame reserves room for them: none is a buffer of
-    its own, frames after the first two allocate no scratch, and the field equals one searched whole."""
+    octree's scratch once the corners are listed, and the triangles' row counts beside the cell set's table; a
+    planned frame reserves room for them all. None is a buffer of its own (nor is a second copy of a float32
+    frame, recentred in place), frames after the first two allocate no scratch, and the field equals one searched
+    whole."""
     from badf.server.adf._buffers import DeviceBuffers
     from badf.server.adf._distance import SearchSplit
 
@@ -1047,8 +1049,8 @@ def test_the_corner_stages_lists_live_in_the_octrees_spent_scratch(device, monke
             assert np.all(np.abs(got - expected) <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frame))
             assert np.array_equal(np.sign(got), np.sign(expected))
     own = {"corner.long_corner", "corner.long_start", "corner.long_best", "corner.inside", "corner.seeds",
-           "corner.far_corner", "corner.far_start", "corner.far_best"}
-    assert not own & set(shared._buffers._arrays)
+           "corner.far_corner", "corner.far_start", "corner.far_best", "oct.rows", "oct.row_ends", "mesh.frame"}
+    assert vertices.dtype == np.float32 and not own & set(shared._buffers._arrays)
 
 
 def test_a_failed_graph_capture_falls_back_to_kernel_by_kernel(device, monkeypatch, caplog):

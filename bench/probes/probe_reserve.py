@@ -32,7 +32,7 @@ def main() -> None:
     from badf.server.adf._octree import Octree
 
     reserve = Octree._reserve_scratch
-    ways = {"reserved": reserve, "grown": lambda self, *after: None}
+    ways = {"reserved": reserve, "grown": lambda self, face_count, *after: None}
     report = {"device": None, "depth": args.depth, "rounds": args.rounds, "moves": args.moves, "meshes": {}}
     for path in args.mesh:
         data = np.load(path)

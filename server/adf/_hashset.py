@@ -95,21 +95,23 @@ class HashSet:
         self.planned = 0  # the expected count of planned passes
         self._view: HashSetView | None = None
 
-    def insert_all(self, expected: int, launch: Callable[[HashSetView], None], *, measure: bool) -> int | None:
-        """Clear and run `launch(view)`, which inserts.
+    def insert_all(self, expected: int, launch: Callable[..., None], *, measure: bool,
+                   beside: tuple[tuple[int, type], ...] = ()) -> int | None:
+        """Clear and run `launch(view, *arrays)`, which inserts; `arrays` are what it needs while keys go in,
+        laid out as `beside` says ((count, dtype) each) in the scratch after the table, contents undefined.
 
         Measuring: `expected` sizes the first try; the count is read back, and the pass repeated with a
         larger table until the list held every distinct key; returns the count and plans later passes
         for it with headroom. Planned: the table is sized for the plan, nothing is read, returns None.
         """
         if not measure:
-            self._reset(self.planned)
-            launch(self._view)
+            view, arrays = self._reset(self.planned, beside)
+            launch(view, *arrays)
             return None
         expected = max(expected, 1)
         while True:
-            view = self._reset(expected)
-            launch(view)
+            view, arrays = self._reset(expected, beside)
+            launch(view, *arrays)
             count = self.host.read(view.count, 0)
             if count <= view.list_capacity:
                 self.planned = with_headroom(count)
@@ -117,19 +119,19 @@ class HashSet:
             expected = 2 * max(count, expected)
 
     @staticmethod
-    def scratch_layout(expected: int) -> tuple[tuple[int, type], ...]:
+    def scratch_layout(expected: int, beside: tuple[tuple[int, type], ...] = ()) -> tuple[tuple[int, type], ...]:
         """What a set expecting that many keys takes from the scratch: its table, and the listed slots, which hold
         twice the list, as radix_sort_pairs needs (the listed keys are sorted in the spent table, which is as
-        long: sort_listed)."""
+        long: sort_listed); then the arrays `beside` (insert_all)."""
         capacity = max(2 * expected, _MIN_CAPACITY)
-        return (capacity, wp.int64), (capacity, wp.int32)
+        return ((capacity, wp.int64), (capacity, wp.int32), *beside)
 
-    def _reset(self, expected: int) -> HashSetView:
-        layout = self.scratch_layout(expected)
+    def _reset(self, expected: int, beside: tuple[tuple[int, type], ...] = ()) -> tuple[HashSetView, list]:
+        layout = self.scratch_layout(expected, beside)
         capacity = layout[0][0]
         b = self.buffers
         view = HashSetView()
-        view.keys, view.listed_slots = self.scratch.take(*layout)
+        view.keys, view.listed_slots, *arrays = self.scratch.take(*layout)
         view.keys.fill_(-1)
         view.capacity = capacity
         view.list_capacity = capacity // 2
@@ -138,7 +140,7 @@ class HashSet:
         view.count = b.ensure(f"{self.name}.count.{self.label}", 1, wp.int32)
         view.count.zero_()
         self._view = view
-        return view
+        return view, arrays
 
     @property
     def view(self) -> HashSetView:

@@ -202,7 +202,7 @@ class Octree:
         """The octree of one frame; a planned frame first reserves the scratch for its stages and for the
         layouts in `reserve` (what its owner lays over the scratch after it)."""
         if not measure:
-            self._reserve_scratch(*reserve)
+            self._reserve_scratch(face_count, *reserve)
         with clock.stage("surface_cells"):
             cell_keys = self._surface_cells(vertices, faces, face_count, origin, side, measure)
         with clock.stage("octree"):
@@ -211,13 +211,18 @@ class Octree:
         with clock.stage("corners"):
             self._corners(measure)
 
-    def _reserve_scratch(self, *after: tuple[tuple[int, type], ...]) -> None:
+    def _reserve_scratch(self, face_count: int, *after: tuple[tuple[int, type], ...]) -> None:
         """A planned frame knows every stage's sizes: its scratch takes the largest stage's room up front, with the
         layouts `after` its owner takes from it later in the frame. A first frame then grows it once, where it grew
         at the radix tree's stage and again at the corner set's, each time waiting for the device."""
-        cells = HashSet.scratch_layout(self.cell_set.planned)
+        cells = HashSet.scratch_layout(self.cell_set.planned, self._row_layout(face_count))
         self.scratch.reserve(cells, self._tree_layout(cells[0][0] // 2), self._node_sort_layout(),
                              self._link_layout(), HashSet.scratch_layout(self.corner_set.planned), *after)
+
+    def _row_layout(self, face_count: int) -> tuple[tuple[int, type], ...]:
+        """Each triangle's row count and their running sum, which the surface cells' insert reads (beside the cell
+        set's table in the scratch; none under the centroid rule)."""
+        return ((face_count, wp.int32), (face_count, wp.int32)) if self.refine == "surface" else ()
 
     def planned_corner_capacity(self) -> int:
         """The corner list's capacity in a planned frame (`corner_capacity` once the frame has listed them)."""
@@ -264,22 +269,22 @@ class Octree:
         expected = self._first_estimate(face_count, side)[1]
 
         lower, upper = self.region_cells
-        if self.refine == "surface":
-            # each triangle's rows of columns of cells, counted and summed, so the insert's threads share them
-            rows = self.buffers.ensure("oct.rows", face_count, wp.int32)
-            row_ends = self.buffers.ensure("oct.row_ends", face_count, wp.int32)
-            wp.launch(_count_surface_rows, dim=face_count,
-                      inputs=[vertices, faces, origin, cell, resolution, lower, upper, _ROW_SUM_LIMIT // face_count],
-                      outputs=[rows], device=self.device)
-            wp.utils.array_scan(rows, row_ends, inclusive=True)
-            threads = face_count + (_ROW_THREADS if self.device.is_cuda else 0)
-            launch = (threads, [vertices, faces, face_count, rows, row_ends, origin, cell, resolution, shift, lower,
-                                upper, threads])
-        else:
-            launch = (face_count, [vertices, faces, origin, cell, resolution, shift, lower, upper])
 
-        def insert(table: HashSetView) -> None:
-            wp.launch(kernel, dim=launch[0], inputs=[*launch[1], table], device=self.device)
+        def insert(table: HashSetView, *rows_and_ends: wp.array) -> None:
+            if self.refine == "surface":
+                # each triangle's rows of columns of cells, counted and summed, so the insert's threads share them
+                rows, row_ends = rows_and_ends
+                wp.launch(_count_surface_rows, dim=face_count, inputs=[vertices, faces, origin, cell, resolution, lower,
+                                                                        upper, _ROW_SUM_LIMIT // face_count],
+                          outputs=[rows], device=self.device)
+                wp.utils.array_scan(rows, row_ends, inclusive=True)
+                threads = face_count + (_ROW_THREADS if self.device.is_cuda else 0)
+                wp.launch(kernel, dim=threads, inputs=[vertices, faces, face_count, rows, row_ends, origin, cell,
+                                                       resolution, shift, lower, upper, threads, table],
+                          device=self.device)
+            else:
+                wp.launch(kernel, dim=face_count, inputs=[vertices, faces, origin, cell, resolution, shift, lower, upper,
+                                                          table], device=self.device)
             if self.has_region:  # one the surface stays out of would leave no cell: keep one, at its corner
                 wp.launch(_insert_if_none, dim=1, inputs=[table, lower, shift], device=self.device)
             if halo > 0:
@@ -290,7 +295,7 @@ class Octree:
                 wp.launch(_insert_halo_cells, dim=threads, inputs=[table, self.surface_count, halo, resolution, shift,
                                                                    threads], device=self.device)
 
-        self.cell_set.insert_all(expected, insert, measure=measure)
+        self.cell_set.insert_all(expected, insert, measure=measure, beside=self._row_layout(face_count))
         if measure and halo > 0:
             self.surface_planned = with_headroom(self.host.read(self.surface_count, 0))
         keys, _ = self.cell_set.sort_listed(shift, KEY_TOP_BIT)
