@@ -338,6 +338,39 @@ def test_adf_error_near_the_surface_is_below_one_finest_cell(device, name):
     assert np.all(np.isfinite(result.normal))
 
 
+@pytest.mark.parametrize("depth", [9, 10])
+def test_coherence_from_32_bit_keys_gives_the_same_field_at_the_deepest_levels(device, depth):
+    """Last frame's corner keys are kept in 32 bits: as they are up to depth 9 (30 bits), and at depth 10 without
+    their lowest 2 bits, so a seed comes from a block of four lattice points. Coherence on and off must still give
+    the same corners, values and faces: small triangles scattered over a box, so that depth 10 stays small."""
+    rng = np.random.default_rng(depth)
+    corners = rng.random((40, 1, 3)) + 4e-3 * rng.standard_normal((40, 3, 3))
+    vertices = corners.reshape(-1, 3).astype(np.float32)
+    faces = np.arange(len(vertices)).reshape(-1, 3)
+    coherent = DistanceField(vertices, faces, depth=depth, device=device)
+    alone = DistanceField(vertices, faces, depth=depth, coherence=False, device=device)
+    for k in range(1, 4):
+        frame = vertices + np.float32(2e-3 * k) * np.sin(9.0 * vertices)
+        coherent.update(frame)
+        alone.update(frame)
+        assert coherent.stats()["counts"]["coherent_frame"]
+        positions, values, faces_named = coherent.corner_samples()
+        expected_positions, expected, expected_faces = alone.corner_samples()
+        np.testing.assert_array_equal(positions, expected_positions)
+        if device == "cpu":
+            np.testing.assert_array_equal(values, expected)
+            np.testing.assert_array_equal(faces_named, expected_faces)
+        else:  # CUDA may round a seed's distance and a walk's apart (see the animation test below)
+            assert np.all(np.abs(values - expected) <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frame))
+        # the frame just kept: its keys, shifted, in order (a seed's quality rests on it; its answer does not)
+        count = coherent.stats()["counts"]["unique_corners"]
+        kept = coherent._buffers._arrays["corner.prev_keys"]
+        keys = coherent._octree.corner_keys.numpy()[:count]
+        assert kept.dtype == wp.int32
+        np.testing.assert_array_equal(kept.numpy()[:count], keys >> (2 if depth == 10 else 0))
+        assert np.all(np.diff(kept.numpy()[:count]) >= 0)
+
+
 @pytest.mark.parametrize("far_cells", [None, 8])
 def test_coherence_gives_identical_results_over_an_animation(device, monkeypatch, far_cells):
     """Also with far corners searched by subtree (which corners are far depends on where searches start)."""

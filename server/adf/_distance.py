@@ -16,10 +16,10 @@ from badf.server.adf._buffers import DeviceBuffers, SharedScratch, SideStream
 from badf.server.adf._bvh import (
     UNLIMITED_VISITS,
     BvhView,
+    cut_bits,
     leaf_distance_held_to_box_sq,
     leaf_distance_sq,
     leaf_triangle,
-    cut_bits,
     nearest_in_entry,
     nearest_leaf_past_ties,
     nearest_leaf_wide,
@@ -173,7 +173,7 @@ class CornerField:
         self._previous_capacity = 0
         self._previous_count = buffers.ensure("corner.prev_count", 1, wp.int32)
         self._next = None
-        self._previous_keys = buffers.ensure("corner.prev_keys", 1, wp.int64)
+        self._previous_keys = buffers.ensure("corner.prev_keys", 1, wp.int32)
         self._previous_face = buffers.ensure("corner.prev_face", 1, wp.int32)
         self._previous_centre: np.ndarray | None = None
         self._previous_side = 0.0
@@ -277,7 +277,8 @@ class CornerField:
         # this frame's corners (the keys past the count are UNLISTED, after every lattice key, so a binary search
         # over them needs no count), which stay in their buffer until the next frame's octree, and its nearest
         # leaves, whose faces the next frame starts from once this one is kept
-        self._next = (corner_keys, count, bvh, capacity, np.asarray(centre, dtype=np.float64).copy(), domain.side)
+        self._next = (corner_keys, count, bvh, capacity, depth, np.asarray(centre, dtype=np.float64).copy(),
+                      domain.side)
 
     def keep_frame(self) -> None:
         """Make the last computed frame's faces the next frame's starting bounds. A frame that outgrew its
@@ -285,11 +286,13 @@ class CornerField:
         answer (down to which of two equally near faces is named) does not depend on the failed run."""
         if self._next is None:
             return
-        keys, count, bvh, capacity, centre, side = self._next
+        keys, count, bvh, capacity, depth, centre, side = self._next
         b = self.buffers
-        self._previous_keys = b.ensure("corner.prev_keys", capacity, wp.int64)
+        self._previous_keys = b.ensure("corner.prev_keys", capacity, wp.int32)
         self._previous_face = b.ensure("corner.prev_face", capacity, wp.int32)
-        wp.copy(self._previous_keys, keys, count=capacity)
+        # the keys in 32 bits (previous_key): 1 MB less for the bunny than the list's own 64
+        wp.launch(_previous_keys, dim=capacity, inputs=[keys, count, depth], outputs=[self._previous_keys],
+                  device=self.device)
         # faces, not leaves: the BVH is rebuilt when the domain moves. Worked out here, from the field's own
         # nearest leaves, rather than kept aside by every frame (1 MB for the bunny)
         wp.launch(_leaf_faces, dim=capacity, inputs=[self.leaf, count, capacity, bvh], outputs=[self._previous_face],
@@ -442,7 +445,7 @@ _nearest_past_ties = _banded_search(nearest_leaf_past_ties, leaf_distance_held_t
 
 @wp.func
 def _corner_seed(bvh: BvhView, p: wp.vec3, origin: wp.vec3, inv_side: float, depth: int, coherent: int,
-                 previous_keys: wp.array(dtype=wp.int64), previous_face: wp.array(dtype=wp.int32),
+                 previous_keys: wp.array(dtype=wp.int32), previous_face: wp.array(dtype=wp.int32),
                  previous_count: wp.array(dtype=wp.int32), previous_capacity: int, previous_origin: wp.vec3,
                  previous_inv_cell: float) -> int:
     """A corner's seed leaf: by last frame's nearest face (coherent), else by Morton key."""
@@ -453,7 +456,27 @@ def _corner_seed(bvh: BvhView, p: wp.vec3, origin: wp.vec3, inv_side: float, dep
 
 
 @wp.func
-def _search_sorted(keys: wp.array(dtype=wp.int64), count: int, key: wp.int64) -> int:
+def previous_key(key: wp.int64, depth: int) -> wp.int32:
+    """A lattice key as last frame's corners keep it, in 32 bits: the key itself up to depth 9 (3 (depth + 1) bits),
+    and at depth 10 without its lowest 2 bits, so that it names a block of four lattice points. Order is kept, so
+    the keys stay sorted; a seed found through a block is a neighbour's face, which bounds a search as well as any
+    (the search's answer does not depend on its start)."""
+    return wp.int32(key >> wp.int64(wp.max(0, 3 * (depth + 1) - 31)))
+
+
+@wp.kernel(enable_backward=False)
+def _previous_keys(keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int32), depth: int,
+                   kept: wp.array(dtype=wp.int32)):
+    """Every listed key as `previous_key`; past the count, as past the list, a key after every lattice key."""
+    i = wp.tid()
+    if i < count[0]:
+        kept[i] = previous_key(keys[i], depth)
+    else:
+        kept[i] = wp.int32(2147483647)
+
+
+@wp.func
+def _search_sorted(keys: wp.array(dtype=wp.int32), count: int, key: wp.int32) -> int:
     lo = int(0)
     hi = count
     while lo < hi:
@@ -673,20 +696,20 @@ def _lattice_point(key: wp.int64, origin: wp.vec3, cell: float) -> wp.vec3:
 
 
 @wp.func
-def coherent_seed(bvh: BvhView, p: wp.vec3, depth: int, previous_keys: wp.array(dtype=wp.int64),
+def coherent_seed(bvh: BvhView, p: wp.vec3, depth: int, previous_keys: wp.array(dtype=wp.int32),
                   previous_face: wp.array(dtype=wp.int32), previous_count: wp.array(dtype=wp.int32),
                   previous_capacity: int, previous_origin: wp.vec3, previous_inv_cell: float) -> int:
     """The leaf of the face nearest last frame's nearest lattice point to p (the same point while the
     domain stays), or its neighbour in Morton order: that face bounds p's search either way."""
     q = (p - previous_origin) * previous_inv_cell
     top = 1 << depth
-    previous_key = morton3(
+    key = morton3(
         wp.clamp(int(wp.round(q[0])), 0, top),
         wp.clamp(int(wp.round(q[1])), 0, top),
         wp.clamp(int(wp.round(q[2])), 0, top),
     )
     listed = wp.min(previous_count[0], previous_capacity)
-    slot = wp.min(_search_sorted(previous_keys, listed, previous_key), listed - 1)
+    slot = wp.min(_search_sorted(previous_keys, listed, previous_key(key, depth)), listed - 1)
     return bvh.face_leaf[previous_face[slot]]
 
 
@@ -732,7 +755,7 @@ def corner_searches(
     bvh: BvhView,
     band: float,
     coherent: int,
-    previous_keys: wp.array(dtype=wp.int64),
+    previous_keys: wp.array(dtype=wp.int32),
     previous_face: wp.array(dtype=wp.int32),
     previous_count: wp.array(dtype=wp.int32),
     previous_capacity: int,
@@ -791,7 +814,7 @@ def list_far_corners(
     bvh: BvhView,
     band: float,
     coherent: int,
-    previous_keys: wp.array(dtype=wp.int64),
+    previous_keys: wp.array(dtype=wp.int32),
     previous_face: wp.array(dtype=wp.int32),
     previous_count: wp.array(dtype=wp.int32),
     previous_capacity: int,
