@@ -876,11 +876,8 @@ def test_a_first_frame_planned_from_the_area_equals_a_measured_one(device, monke
     assert held <= sum(measured.stats()["memory_bytes"].values())
 
 
-@pytest.mark.parametrize("name", ["spot", "stanford-bunny"])
-def test_a_planned_frame_allocates_the_octrees_scratch_once(device, monkeypatch, name):
-    """A planned frame reserves its largest stage's scratch up front. Before, a planned first frame (and the frame
-    after it, which fits the buffers to its plan) allocated the scratch three times, growing it at the radix
-    tree's stage and again at the corner set's, each time waiting for the device."""
+def _allocations(monkeypatch) -> list[str]:
+    """The names of the device arrays allocated from now on (the list grows as they are)."""
     from badf.server.adf._buffers import DeviceBuffers
 
     allocated = []
@@ -891,6 +888,15 @@ def test_a_planned_frame_allocates_the_octrees_scratch_once(device, monkeypatch,
         return allocate(self, name, *args, **kwargs)
 
     monkeypatch.setattr(DeviceBuffers, "_allocate", counted)
+    return allocated
+
+
+@pytest.mark.parametrize("name", ["spot", "stanford-bunny"])
+def test_a_planned_frame_allocates_the_octrees_scratch_once(device, monkeypatch, name):
+    """A planned frame reserves its largest stage's scratch up front. Before, a planned first frame (and the frame
+    after it, which fits the buffers to its plan) allocated the scratch three times, growing it at the radix
+    tree's stage and again at the corner set's, each time waiting for the device."""
+    allocated = _allocations(monkeypatch)
     vertices, faces = meshes.load(name)
     field = DistanceField(vertices, faces, depth=6, device=device)
     assert field.stats()["measured_frames"] == 0  # planned from the area
@@ -1049,17 +1055,9 @@ def test_arrays_that_live_within_a_stage_are_laid_over_the_octrees_scratch(devic
     planned frame reserves room for them all. None is a buffer of its own (nor is a second copy of a float32
     frame, recentred in place), frames after the first two allocate no scratch, and the field equals one searched
     whole."""
-    from badf.server.adf._buffers import DeviceBuffers
     from badf.server.adf._distance import SearchSplit
 
-    allocated = []
-    allocate = DeviceBuffers._allocate
-
-    def counted(self, name, *args, **kwargs):
-        allocated.append(name)
-        return allocate(self, name, *args, **kwargs)
-
-    monkeypatch.setattr(DeviceBuffers, "_allocate", counted)
+    allocated = _allocations(monkeypatch)
     vertices, faces = meshes.load("spot")
     whole = DistanceField(vertices, faces, depth=5, sign="winding", device=device)
     shared = DistanceField(vertices, faces, depth=5, sign="winding", device=device)
