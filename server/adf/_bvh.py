@@ -861,29 +861,25 @@ def _merged_moments(centre_radius_l: wp.vec4, normal_l: wp.vec4, s0_l: wp.vec4, 
 
 
 @wp.func
-def _entry_box(planes: wp.array(dtype=wp.vec4), node: int, j: int):
-    """(lower, upper) of entry j of 4-wide node `node`, read from L2 (written in this launch); w is 0."""
-    lower = wp.vec4(0.0)
-    upper = wp.vec4(0.0)
-    for axis in range(3):
-        lower[axis] = load_coherent_vec4(planes, 6 * node + axis)[j]
-        upper[axis] = load_coherent_vec4(planes, 6 * node + 3 + axis)[j]
-    return lower, upper
+def _entry_box(lower_x: wp.vec4, lower_y: wp.vec4, lower_z: wp.vec4, upper_x: wp.vec4, upper_y: wp.vec4,
+               upper_z: wp.vec4, j: int):
+    """(lower, upper) of entry j of a 4-wide node, from its six planes; w is 0."""
+    return (wp.vec4(lower_x[j], lower_y[j], lower_z[j], 0.0), wp.vec4(upper_x[j], upper_y[j], upper_z[j], 0.0))
 
 
 @wp.func
-def _side_moments(node: int, side: int, wide_node: int, entry: int, planes: wp.array(dtype=wp.vec4),
-                  slot_child: wp.array(dtype=wp.int32), internal_count: int, triangles: wp.array(dtype=wp.vec4),
-                  node_moments: wp.array(dtype=wp.vec4)):
-    """The moments and box of child `side` of binary node `node` (4-wide node `wide_node`), whose entries start at
-    its `entry`-th: a single triangle (one entry), or a binary node between it and two entries, whose moments are
-    merged and stored here. Returns those, and the entry after its own."""
+def _side_moments(node: int, side: int, entry: int, lower_x: wp.vec4, lower_y: wp.vec4, lower_z: wp.vec4,
+                  upper_x: wp.vec4, upper_y: wp.vec4, upper_z: wp.vec4, slot_child: wp.array(dtype=wp.int32),
+                  internal_count: int, triangles: wp.array(dtype=wp.vec4), node_moments: wp.array(dtype=wp.vec4)):
+    """The moments and box of child `side` of binary node `node`, whose entries in its 4-wide node (whose planes
+    are given) start at the `entry`-th: a single triangle (one entry), or a binary node between it and two
+    entries, whose moments are merged and stored here. Returns those, and the entry after its own."""
     child = slot_child[2 * node + side]
-    lower, upper = _entry_box(planes, wide_node, entry)
+    lower, upper = _entry_box(lower_x, lower_y, lower_z, upper_x, upper_y, upper_z, entry)
     if child >= internal_count:
         centre_radius, normal_area, s0, s1 = _child_moments(child, internal_count, triangles, node_moments)
         return centre_radius, normal_area, s0, s1, lower, upper, entry + 1
-    lower_r, upper_r = _entry_box(planes, wide_node, entry + 1)
+    lower_r, upper_r = _entry_box(lower_x, lower_y, lower_z, upper_x, upper_y, upper_z, entry + 1)
     centre_radius_l, normal_l, s0_l, s1_l = _child_moments(slot_child[2 * child], internal_count, triangles,
                                                             node_moments)
     centre_radius_r, normal_r, s0_r, s1_r = _child_moments(slot_child[2 * child + 1], internal_count, triangles,
@@ -969,17 +965,22 @@ def _refit(
         if wp.atomic_add(arrivals, node, 1) < present - 1:
             return
         # an absent entry's box is empty (lower above upper), so it drops out of the union
-        lower = wp.vec3(_min4(load_coherent_vec4(planes, 6 * node)), _min4(load_coherent_vec4(planes, 6 * node + 1)),
-                        _min4(load_coherent_vec4(planes, 6 * node + 2)))
-        upper = wp.vec3(_max4(load_coherent_vec4(planes, 6 * node + 3)),
-                        _max4(load_coherent_vec4(planes, 6 * node + 4)),
-                        _max4(load_coherent_vec4(planes, 6 * node + 5)))
+        lower_x = load_coherent_vec4(planes, 6 * node)
+        lower_y = load_coherent_vec4(planes, 6 * node + 1)
+        lower_z = load_coherent_vec4(planes, 6 * node + 2)
+        upper_x = load_coherent_vec4(planes, 6 * node + 3)
+        upper_y = load_coherent_vec4(planes, 6 * node + 4)
+        upper_z = load_coherent_vec4(planes, 6 * node + 5)
+        lower = wp.vec3(_min4(lower_x), _min4(lower_y), _min4(lower_z))
+        upper = wp.vec3(_max4(upper_x), _max4(upper_y), _max4(upper_z))
         if with_moments != 0:
             binary = wide_node[node]
             centre_radius_l, normal_l, s0_l, s1_l, lower_l, upper_l, after = _side_moments(
-                binary, 0, node, 0, planes, slot_child, internal_count, triangles, node_moments)
+                binary, 0, 0, lower_x, lower_y, lower_z, upper_x, upper_y, upper_z, slot_child, internal_count,
+                triangles, node_moments)
             centre_radius_r, normal_r, s0_r, s1_r, lower_r, upper_r, _end = _side_moments(
-                binary, 1, node, after, planes, slot_child, internal_count, triangles, node_moments)
+                binary, 1, after, lower_x, lower_y, lower_z, upper_x, upper_y, upper_z, slot_child, internal_count,
+                triangles, node_moments)
             centre_radius, normal_area, s0, s1 = _merged_moments(
                 centre_radius_l, normal_l, s0_l, s1_l, lower_l, upper_l,
                 centre_radius_r, normal_r, s0_r, s1_r, lower_r, upper_r)
