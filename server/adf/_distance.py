@@ -210,12 +210,10 @@ class CornerField:
             shift = ((self._previous_centre - centre) * scale - self._previous_side * scale / 2.0).astype(np.float32)
             previous_origin = wp.vec3(*shift)
             previous_cell = self._previous_side * scale / float(1 << depth)
-        split = self.planned_split(expected_count, bvh.internal_count)
-        self._last_split = split
+        split, far_cells = self._shared_out(expected_count, bvh.internal_count, sign.method)
+        self._last_split, self._last_far_cells = split, far_cells
         splitting = split.budget > 0
         by_winding = sign.method == SIGN_WINDING
-        far_cells = self.far_cells_for(sign.method) if bvh.internal_count > 0 else 0
-        self._last_far_cells = far_cells
         long_corner, long_start, long_best, inside, seeds, far_corner, far_start, far_best = self.scratch.take(
             *self.scratch_layout(capacity, expected_count, bvh.internal_count, sign.method))
         long_count = b.ensure("corner.long_count", 1, wp.int32)
@@ -305,13 +303,19 @@ class CornerField:
         """The arrays `compute` takes from the scratch for this many corners: the long searches' corners, starts and
         bests (where searches are split), the winding numbers' verdicts (where they sign), the seeds and the far
         corners' list (where far corners are searched by subtree); one element where unused."""
-        splitting = self.planned_split(expected_count, internal_count).budget > 0
-        far = self.far_cells_for(sign_method) > 0 and internal_count > 0
-        listed = capacity if splitting else 1
+        split, far_cells = self._shared_out(expected_count, internal_count, sign_method)
+        far = far_cells > 0
+        listed = capacity if split.budget > 0 else 1
         far_listed = max(1, capacity // FAR_LIST_FRACTION) if far else 1
         return ((listed, wp.int32), (listed, wp.int64), (listed, wp.int64),
                 (capacity if sign_method == SIGN_WINDING else 1, wp.uint8), (capacity if far else 1, wp.int32),
                 (far_listed, wp.int32), (far_listed, wp.int64), (far_listed, wp.int64))
+
+    def _shared_out(self, expected_count: int, internal_count: int, sign_method: int) -> tuple[SearchSplit, int]:
+        """How `compute` shares out this many corners' searches: the split of long searches, and the far-corner
+        threshold (0 without a tree to cut)."""
+        far_cells = self.far_cells_for(sign_method) if internal_count > 0 else 0
+        return self.planned_split(expected_count, internal_count), far_cells
 
     def planned_split(self, expected_count: int, internal_count: int) -> SearchSplit:
         """The split `compute` will use for this many corners (its override, else the automatic choice)."""

@@ -126,6 +126,11 @@ class HashSet:
         capacity = max(2 * expected, _MIN_CAPACITY)
         return ((capacity, wp.int64), (capacity, wp.int32), *beside)
 
+    @staticmethod
+    def list_capacity_for(expected: int) -> int:
+        """The list's capacity of a set expecting that many keys: half its table (`scratch_layout`)."""
+        return max(2 * expected, _MIN_CAPACITY) // 2
+
     def _reset(self, expected: int, beside: tuple[tuple[int, type], ...] = ()) -> tuple[HashSetView, list]:
         layout = self.scratch_layout(expected, beside)
         capacity = layout[0][0]

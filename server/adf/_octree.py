@@ -216,8 +216,9 @@ class Octree:
         layouts `after` its owner takes from it later in the frame. A first frame then grows it once, where it grew
         at the radix tree's stage and again at the corner set's, each time waiting for the device."""
         cells = HashSet.scratch_layout(self.cell_set.planned, self._row_layout(face_count))
-        self.scratch.reserve(cells, self._tree_layout(cells[0][0] // 2), self._node_sort_layout(),
-                             self._link_layout(), HashSet.scratch_layout(self.corner_set.planned), *after)
+        self.scratch.reserve(cells, self._tree_layout(HashSet.list_capacity_for(self.cell_set.planned)),
+                             self._node_sort_layout(), self._link_layout(),
+                             HashSet.scratch_layout(self.corner_set.planned), *after)
 
     def _row_layout(self, face_count: int) -> tuple[tuple[int, type], ...]:
         """Each triangle's row count and their running sum, which the surface cells' insert reads (beside the cell
@@ -226,7 +227,7 @@ class Octree:
 
     def planned_corner_capacity(self) -> int:
         """The corner list's capacity in a planned frame (`corner_capacity` once the frame has listed them)."""
-        return HashSet.scratch_layout(self.corner_set.planned)[0][0] // 2
+        return HashSet.list_capacity_for(self.corner_set.planned)
 
     @property
     def corner_capacity(self) -> int:
