@@ -984,6 +984,79 @@ def test_planned_frames_equal_measured_frames(device):
     assert np.abs(values[pick] - truth).max() <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frames[-1])
 
 
+def test_a_frame_that_outgrows_its_plan_leaves_last_frames_bounds_as_they_were(device, monkeypatch):
+    """A planned frame queues the keeping of its corners' faces for the next frame on the device, to take effect
+    only if its counts fit their plan: one that outgrew them leaves last frame's keys, faces and count as they
+    were (the frame run again in its place starts from them), and the frame after it starts from the rerun's."""
+    vertices, faces = meshes.sphere()
+    flat = vertices * np.array([1.0, 1.0, 0.05], np.float32)
+    frames = [flat * np.float32(1.0 + 0.01 * k) for k in range(1, 6)]
+    frames += [vertices * np.array([1.0, 1.0, z], np.float32) for z in (0.6, 1.0, 0.99, 0.98)]
+    field = DistanceField(flat, faces, depth=5, device=device)
+    corners = field._corners
+
+    def kept() -> tuple[np.ndarray, np.ndarray]:
+        n = int(corners._previous_count.numpy()[0])
+        return corners._previous_keys.numpy()[:n].copy(), corners._previous_face.numpy()[:n].copy()
+
+    take_report, failed = DistanceField._take_report, []
+
+    def watched(self) -> bool:
+        fits = take_report(self)
+        if not fits:
+            failed.append(kept())
+        return fits
+
+    monkeypatch.setattr(DistanceField, "_take_report", watched)
+    for frame in frames:
+        before, replans = kept(), field.stats()["replans"]
+        field.update(frame)
+        if field.stats()["replans"] > replans:
+            assert all(np.array_equal(a, b) for a, b in zip(failed[-1], before))
+            keys = field._octree.corner_keys.numpy()[: field._octree.corner_count]
+            assert len(kept()[0]) == len(keys) != len(before[0])  # the rerun's corners are kept
+    assert failed, "no frame outgrew its plan"
+    assert field.stats()["replans"] == len(failed)
+
+
+def test_a_replayed_frame_keeps_its_corners_within_its_graph(device, monkeypatch):
+    """On CUDA a planned frame's graph holds the keeping of its corners for the next frame: a replayed frame
+    launches nothing of it from the host once its report is back, and the next frame starts from it (the fields
+    equal an object's that keeps every frame from the host)."""
+    if not device.startswith("cuda"):
+        pytest.skip("graphs are captured on CUDA only")
+    from badf.server.adf import _distance
+
+    vertices, faces = meshes.load("spot")
+    frames = [vertices * np.float32(1.0 + 1e-3 * (k % 3)) for k in range(8)]
+    field = DistanceField(vertices, faces, depth=6, device=device)
+    host = DistanceField(vertices, faces, depth=6, device=device)
+    host._corners.queue_keep = lambda report, fits_at: False
+    launch, replay, launched = wp.launch, wp.capture_launch, []
+
+    def watched(kernel, *args, **kwargs):
+        launched.append(kernel)
+        return launch(kernel, *args, **kwargs)
+
+    def replayed(graph, *args, **kwargs):
+        launched.append("graph")
+        return replay(graph, *args, **kwargs)
+
+    monkeypatch.setattr(wp, "launch", watched)
+    monkeypatch.setattr(wp, "capture_launch", replayed)
+    replays = 0
+    for frame in frames:
+        captures = field.stats()["graph_captures"]
+        launched.clear()
+        field.update(frame)
+        if "graph" in launched and field.stats()["graph_captures"] == captures:
+            replays += 1
+            assert _distance._keep_frame not in launched
+        host.update(frame)
+        assert all(np.array_equal(a, b) for a, b in zip(field.corner_samples(), host.corner_samples()))
+    assert replays >= 3
+
+
 @pytest.mark.parametrize("name,sign", [("stanford-bunny", "winding"), ("spot", "pseudonormal")])
 def test_work_beside_the_frame_stream_gives_the_same_field(device, monkeypatch, name, sign):
     """On CUDA the BVH's refit runs beside the octree's build, and winding numbers and far corners' searches

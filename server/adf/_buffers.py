@@ -42,6 +42,12 @@ class DeviceBuffers:
             self._arrays[name] = arr
         return arr
 
+    def holds(self, name: str, count: int) -> bool:
+        """Whether `ensure(name, count)` would hand back the array as it is (neither grown nor, while fitting, made
+        anew smaller)."""
+        arr = self._arrays.get(name)
+        return arr is not None and arr.shape[0] >= count and not self._shrinks(name, count)
+
     def release(self, prefix: str) -> None:
         """Give back every array whose name starts with `prefix` (freed once nothing else holds it)."""
         for name in [name for name in self._arrays if name.startswith(prefix)]:

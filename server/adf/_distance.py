@@ -279,25 +279,41 @@ class CornerField:
         self._next = (corner_keys, count, bvh, capacity, depth, np.asarray(centre, dtype=np.float64).copy(),
                       domain.side)
 
-    def keep_frame(self) -> None:
-        """Make the last computed frame's faces the next frame's starting bounds. A frame that outgrew its
-        planned sizes is not kept: the frame run again in its place starts from the same bounds, so its
-        answer (down to which of two equally near faces is named) does not depend on the failed run."""
+    def queue_keep(self, report: wp.array, fits_at: int) -> bool:
+        """Queue the keeping of the frame just computed (`keep_frame`) at the end of its own work, on the device,
+        so that it is part of the frame (and of its graph) rather than launched once the host has its report. It
+        takes effect only where report[fits_at] is 1 (the frame fitted its plan). Whether it was queued: not where
+        last frame's arrays must be made anew first, as a frame that did not fit would lose them."""
+        if self._next is None:
+            return False
+        capacity = self._next[3]
+        if not (self.buffers.holds("corner.prev_keys", capacity) and self.buffers.holds("corner.prev_face", capacity)):
+            return False
+        self._launch_keep(report, fits_at)
+        return True
+
+    def keep_frame(self, report: wp.array, fits_at: int, *, queued: bool) -> None:
+        """Make the last computed frame's faces the next frame's starting bounds, once its report has said that it
+        fitted (report[fits_at] is 1): launched here unless `queue_keep` `queued` it. A frame that outgrew its
+        planned sizes is not kept: the frame run again in its place starts from the same bounds, so its answer
+        (down to which of two equally near faces is named) does not depend on the failed run."""
         if self._next is None:
             return
-        keys, count, bvh, capacity, depth, centre, side = self._next
-        b = self.buffers
-        self._previous_keys = b.ensure("corner.prev_keys", capacity, wp.int32)
-        self._previous_face = b.ensure("corner.prev_face", capacity, wp.int32)
-        # the keys in 32 bits (previous_key): 1 MB less for the bunny than the list's own 64
-        wp.launch(_previous_keys, dim=capacity, inputs=[keys, count, depth], outputs=[self._previous_keys],
-                  device=self.device)
-        # faces, not leaves: the BVH is rebuilt when the domain moves. Worked out here, from the field's own
-        # nearest leaves, rather than kept aside by every frame (1 MB for the bunny)
-        wp.launch(_leaf_faces, dim=capacity, inputs=[self.leaf, count, capacity, bvh], outputs=[self._previous_face],
-                  device=self.device)
-        wp.copy(self._previous_count, count, count=1)
+        if not queued:
+            capacity = self._next[3]
+            self._previous_keys = self.buffers.ensure("corner.prev_keys", capacity, wp.int32)
+            self._previous_face = self.buffers.ensure("corner.prev_face", capacity, wp.int32)
+            self._launch_keep(report, fits_at)
+        _keys, _count, _bvh, capacity, _depth, centre, side = self._next
         self._previous_capacity, self._previous_centre, self._previous_side = capacity, centre, side
+
+    def _launch_keep(self, report: wp.array, fits_at: int) -> None:
+        keys, count, bvh, capacity, depth, _centre, _side = self._next
+        # the keys in 32 bits (previous_key): 1 MB less for the bunny than the list's own 64; faces, not leaves,
+        # as the BVH is rebuilt when the domain moves: worked out here, from the field's own nearest leaves,
+        # rather than kept aside by every frame (1 MB for the bunny)
+        wp.launch(_keep_frame, dim=capacity, inputs=[keys, count, depth, self.leaf, capacity, bvh, report, fits_at],
+                  outputs=[self._previous_keys, self._previous_face, self._previous_count], device=self.device)
 
     def scratch_layout(self, capacity: int, expected_count: int, internal_count: int,
                        sign_method: int) -> tuple[tuple[int, type], ...]:
@@ -470,12 +486,21 @@ def previous_key(key: wp.int64, depth: int) -> wp.int32:
 
 
 @wp.kernel(enable_backward=False)
-def _previous_keys(keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int32), depth: int,
-                   kept: wp.array(dtype=wp.int32)):
-    """Every listed key as `previous_key`; past the count, as past the list, a key after every lattice key."""
+def _keep_frame(keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int32), depth: int,
+                leaf: wp.array(dtype=wp.int32), capacity: int, bvh: BvhView, report: wp.array(dtype=wp.int32),
+                fits_at: int, kept: wp.array(dtype=wp.int32), face: wp.array(dtype=wp.int32),
+                kept_count: wp.array(dtype=wp.int32)):
+    """Where the frame fitted (report[fits_at] == 1): every listed key as `previous_key` (past the count, as past
+    the list, a key after every lattice key), the face of each corner's nearest leaf, and the count."""
     i = wp.tid()
-    if i < count[0]:
+    if report[fits_at] != 1:
+        return
+    n = count[0]
+    if i == 0:
+        kept_count[0] = n
+    if i < n:
         kept[i] = previous_key(keys[i], depth)
+        face[i] = bvh.leaf_face[leaf[i]]
     else:
         kept[i] = wp.int32(2147483647)
 
@@ -491,14 +516,6 @@ def _search_sorted(keys: wp.array(dtype=wp.int32), count: int, key: wp.int32) ->
         else:
             hi = mid
     return lo
-
-
-@wp.kernel(enable_backward=False)
-def _leaf_faces(leaf: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), capacity: int, bvh: BvhView,
-                face: wp.array(dtype=wp.int32)):
-    i = wp.tid()
-    if i < wp.min(count[0], capacity):
-        face[i] = bvh.leaf_face[leaf[i]]
 
 
 _KERNELS: dict[tuple[str, int], wp.Kernel] = {}

@@ -376,14 +376,16 @@ class DistanceField:
         self._stream = wp.Stream(self._device) if self._device.is_cuda else None
         self._beside = SideStream(self._device)  # the BVH's refit runs on it, beside the octree's build
         # the frame's counts, copied to the host at its end (pinned, so the copy can be part of a graph)
-        self._report = wp.zeros(64, dtype=wp.int32, device="cpu", pinned=self._device.is_cuda)
+        self._report = wp.zeros(_REPORT_LENGTH, dtype=wp.int32, device="cpu", pinned=self._device.is_cuda)
+        self._report_on_device = b.array("frame.report", _REPORT_LENGTH, wp.int32)  # gathered there, one copy back
         self._report_sizes: list[int] = []
+        self._keep_queued = False  # whether the frame queued the keeping of its corners on the device (queue_keep)
         self._staging = wp.empty(vertex_count, dtype=wp.vec3, device="cpu", pinned=self._device.is_cuda)
         self._failed_update: str | None = None  # why the last update failed after its input was checked
         self._planned = False  # whether the next frame may be planned (from an estimate, or a frame's counts)
         self._estimated = False  # whether the next frame's plan is an estimate (the first frame's, from its area)
         self._fit_buffers = False  # whether the next frame sizes the buffers anew (after an estimated frame)
-        self._graph = None  # (key, graph, stage names, report sizes) of the captured planned frame
+        self._graph = None  # (key, graph, stage names, report sizes, keep queued) of the captured planned frame
         self._graph_candidate = None  # key of the last planned frame run eagerly
         self.use_graphs = True
         self._bvh = Bvh(len(f), with_moments=self._sign != "none", buffers=b)
@@ -697,7 +699,7 @@ class DistanceField:
                 self._counters.measured_frames += 1
                 self._take_report()
                 self._planned = True
-            self._corners.keep_frame()
+            self._corners.keep_frame(self._report_on_device, self._fits_at, queued=self._keep_queued)
         self._counters.last_update_wall_ms = (time.perf_counter() - wall) * 1e3
 
     def _planned_frame(self, domain_moved: bool) -> bool:
@@ -762,7 +764,7 @@ class DistanceField:
         split = self._corners.planned_split(self._octree.corner_count, self._bvh.internal_count)
         key = self._plan_key(split)
         if self._graph is not None and self._graph[0] == key:
-            _, graph, stages, sizes = self._graph
+            _, graph, stages, sizes, self._keep_queued = self._graph
             wp.capture_launch(graph)
             self._clock.replayed(stages)
             self._report_sizes = sizes
@@ -788,7 +790,7 @@ class DistanceField:
             self._pipeline(measure=False)
             return
         stages = [name for name in self._clock.recorded if name not in stages_before]
-        self._graph = (key, graph, stages, self._report_sizes)
+        self._graph = (key, graph, stages, self._report_sizes, self._keep_queued)
         self._counters.graph_captures += 1
         wp.capture_launch(graph)
 
@@ -802,18 +804,25 @@ class DistanceField:
         )
 
     def _queue_report(self) -> list[int]:
-        """Queue copies of the frame's counts to the host; returns the capacity each must fit."""
-        sizes = []
-        for k, (array, index, capacity) in enumerate(self._octree.report()):
-            wp.copy(self._report, array, dest_offset=k, src_offset=index, count=1)
-            sizes.append(capacity)
-        k = len(sizes)
-        wp.copy(self._report, self._normals.winding_frame, dest_offset=k, count=1)
-        wp.copy(self._report, self._octree.level_starts, dest_offset=k + 1, count=self._depth + 1)
-        wp.copy(self._report, self._normals.parts_overlap, dest_offset=k + 2 + self._depth, count=1)
-        wp.copy(self._report, self._normals.seams_torn, dest_offset=k + 3 + self._depth, count=1)
-        wp.copy(self._report, self._octree.surface_count, dest_offset=k + 4 + self._depth, count=1)
-        return sizes
+        """Gather the frame's counts on the device, with whether each fits its capacity, and queue the keeping of
+        the frame (which takes effect only if they all do) and one copy of the counts to the host; returns the
+        capacity each must fit. The layout (`_take_report`): the sizes, the sign's frame method, the levels'
+        first nodes, whether parts overlap, whether seams tore, the surface's own cells, whether it all fitted."""
+        sizes = self._octree.report()
+        assert len(sizes) == _REPORT_SIZES
+        (a0, i0, c0), (a1, i1, c1), (a2, i2, c2), (a3, i3, c3) = sizes
+        n = self._normals
+        wp.launch(_gather_report, dim=1,
+                  inputs=[a0, i0, c0, a1, i1, c1, a2, i2, c2, a3, i3, c3, n.winding_frame, self._octree.level_starts,
+                          self._depth + 1, n.parts_overlap, n.seams_torn, self._octree.surface_count],
+                  outputs=[self._report_on_device], device=self._device)
+        self._keep_queued = self._corners.queue_keep(self._report_on_device, self._fits_at)
+        wp.copy(self._report, self._report_on_device, count=self._fits_at + 1)
+        return [c0, c1, c2, c3]
+
+    @property
+    def _fits_at(self) -> int:
+        return _REPORT_SIZES + 5 + self._depth
 
     def _take_report(self) -> bool:
         """Wait for the frame and read its counts; whether every one fitted its capacity."""
@@ -822,7 +831,9 @@ class DistanceField:
         report = self._report.numpy()
         k = len(self._report_sizes)
         counts = [int(x) for x in report[:k]]
-        if any(count > capacity for count, capacity in zip(counts, self._report_sizes)):
+        fits = all(count <= capacity for count, capacity in zip(counts, self._report_sizes))
+        assert fits == (report[self._fits_at] == 1), "the device's and the host's fit disagree"
+        if not fits:
             return False
         self._octree.take_counts(counts, report[k + 1 : k + 2 + self._depth], int(report[k + 4 + self._depth]))
         self._normals.set_frame_method(int(report[k]), int(report[k + 2 + self._depth]), int(report[k + 3 + self._depth]))
@@ -848,6 +859,32 @@ class DistanceField:
         keys = self._octree.node_keys.numpy()[: self._octree.node_count]
         levels = (keys >> 32).astype(np.int64)
         return levels, _decode_morton(keys & 0xFFFFFFFF).astype(np.int64)
+
+
+# The frame's report: four sizes, the sign's frame method, up to MAX_DEPTH + 1 levels' first nodes, three flags
+_REPORT_SIZES = 4
+_REPORT_LENGTH = 32
+
+
+@wp.kernel(enable_backward=False)
+def _gather_report(a0: wp.array(dtype=wp.int32), i0: int, c0: int, a1: wp.array(dtype=wp.int32), i1: int, c1: int,
+                   a2: wp.array(dtype=wp.int32), i2: int, c2: int, a3: wp.array(dtype=wp.int32), i3: int, c3: int,
+                   winding_frame: wp.array(dtype=wp.int32), level_starts: wp.array(dtype=wp.int32), levels: int,
+                   parts_overlap: wp.array(dtype=wp.int32), seams_torn: wp.array(dtype=wp.int32),
+                   surface_count: wp.array(dtype=wp.int32), report: wp.array(dtype=wp.int32)):
+    """One thread writes the frame's report (`DistanceField._queue_report`'s layout)."""
+    report[0] = a0[i0]
+    report[1] = a1[i1]
+    report[2] = a2[i2]
+    report[3] = a3[i3]
+    report[4] = winding_frame[0]
+    for level in range(levels):
+        report[5 + level] = level_starts[level]
+    report[5 + levels] = parts_overlap[0]
+    report[6 + levels] = seams_torn[0]
+    report[7 + levels] = surface_count[0]
+    fits = a0[i0] <= c0 and a1[i1] <= c1 and a2[i2] <= c2 and a3[i3] <= c3
+    report[8 + levels] = wp.where(fits, 1, 0)
 
 
 @wp.kernel(enable_backward=False)
