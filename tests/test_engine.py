@@ -1843,6 +1843,26 @@ def test_a_flap_a_millionth_thick_signs_like_the_oracle(device, sign):
     assert _wrong_signs(field, vertices, faces, points, beyond=cell) == {"exact": 0, "adf": 0}
 
 
+@pytest.mark.parametrize("name", ["tetrahedron", "spot"])
+def test_a_frames_enclosed_volume_and_area_are_summed_over_every_face(device, name):
+    """The volume and area that decide whether a frame encloses anything (pseudonormals, else winding numbers), summed
+    on the device by threads that each take every 4096th face: both within float32 rounding of float64 sums, for a
+    mesh with fewer faces than threads and one with more."""
+    if name == "tetrahedron":
+        vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+        faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.int32)
+    else:
+        vertices, faces = meshes.load(name)
+    field = DistanceField(vertices, faces, depth=4, sign="pseudonormal", device=device)
+    local = field._vertices.numpy().astype(np.float64)
+    a, b, c = (local[field._faces.numpy()[:, k]] for k in range(3))
+    volume = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum()
+    summed = field._normals.volume_area.numpy()
+    assert name == "tetrahedron" or len(faces) > 4096  # more faces than threads: some threads sum several
+    assert abs(summed[0] - volume) <= 1e-5 * abs(volume) and abs(summed[1] - area) <= 1e-5 * area, (summed, volume, area)
+
+
 def test_a_frame_that_presses_a_cap_flat_is_signed_by_winding_numbers(device):
     """Updated to a frame whose cap is pressed flat, a sphere signed by pseudonormals read points up to a
     fifth of its size away inside (49 of 6,000, outside check 2026-11-22): above the flap, faces of both
