@@ -43,6 +43,39 @@ def test_hash_set_lists_every_distinct_key_once(device, distinct, expected):
     np.testing.assert_array_equal(np.sort(table.view.listed_keys.numpy()[:distinct]), np.sort(unique))
 
 
+@pytest.mark.parametrize("together", [True, False])
+def test_a_key_inserted_by_many_threads_at_once_is_listed_once(device, together):
+    """Each of 3,000 keys inserted 27 times, by neighbouring threads (which meet at the same slot in the same
+    instant, as a halo cell's 27 neighbours or a corner's eight cells do) or spread over the launch: a thread may
+    read its slot before another's compare-and-swap lands, and every key is still listed exactly once, in the slot
+    every one of its inserts returns."""
+    rng = np.random.default_rng(27)
+    unique = rng.choice(1 << 40, size=3000, replace=False).astype(np.int64)
+    keys = np.repeat(unique, 27) if together else rng.permutation(np.repeat(unique, 27))
+    buffers = DeviceBuffers(wp.get_device(device))
+    table = HashSet("set", buffers, SharedScratch("scratch", buffers), HostReadback(buffers.device), label="t")
+    device_keys = wp.array(keys, dtype=wp.int64, device=device)
+    slots = wp.zeros(len(keys), dtype=wp.int32, device=device)
+    count = table.insert_all(len(unique), lambda view: wp.launch(_insert_keys_at, dim=len(keys),
+                                                                  inputs=[device_keys, view, slots], device=device),
+                             measure=True)
+    assert count == len(unique)
+    view = table.view
+    listed = view.listed_keys.numpy()[:count]
+    np.testing.assert_array_equal(np.sort(listed), np.sort(unique))
+    table_keys, slots = view.keys.numpy(), slots.numpy()
+    assert np.all(table_keys[slots] == keys)  # each insert's slot holds its key
+    first = {}
+    for key, slot in zip(keys.tolist(), slots.tolist()):
+        assert first.setdefault(key, slot) == slot  # and every insert of a key returned the same slot
+    np.testing.assert_array_equal(table_keys[view.listed_slots.numpy()[:count]], listed)
+
+
+@wp.kernel(enable_backward=False)
+def _insert_keys_at(keys: wp.array(dtype=wp.int64), table: HashSetView, slots: wp.array(dtype=wp.int32)):
+    slots[wp.tid()] = set_insert(table, keys[wp.tid()])
+
+
 def test_a_scratch_take_lays_its_arrays_apart_and_over_the_last_take(device, monkeypatch):
     buffers = DeviceBuffers(wp.get_device(device))
     scratch = SharedScratch("scratch", buffers)
