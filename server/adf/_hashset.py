@@ -61,18 +61,13 @@ def set_insert(table: HashSetView, key: wp.int64) -> int:
     (twelfth outside check)."""
     slot = int(_hash(key) % wp.uint64(table.capacity))
     for probe in range(table.capacity):
-        # a slot only ever goes from EMPTY to a key, so a plain read that finds a key is final: most inserts (a
-        # corner shared by up to eight cells, a halo cell by up to 27) find their key there without an atomic. One
-        # that reads EMPTY, stale or not, claims the slot by compare-and-swap.
-        previous = table.keys[slot]
+        previous = wp.atomic_cas(table.keys, slot, EMPTY, key)
         if previous == EMPTY:
-            previous = wp.atomic_cas(table.keys, slot, EMPTY, key)
-            if previous == EMPTY:
-                index = wp.atomic_add(table.count, 0, 1)
-                if index < table.list_capacity:
-                    table.listed_keys[index] = key
-                    table.listed_slots[index] = slot
-                return slot
+            index = wp.atomic_add(table.count, 0, 1)
+            if index < table.list_capacity:
+                table.listed_keys[index] = key
+                table.listed_slots[index] = slot
+            return slot
         if previous == key:
             return slot
         slot += 1
