@@ -22,9 +22,6 @@ WINDING_CONFIDENCE = 0.1
 # The engine's fast winding number (exact near the point, expansions of far BVH nodes) off the surface:
 # absolute error, half the confidence margin, so no sign the tests trust rests on the approximation.
 FAST_WINDING = 0.05
-# The loose walk that settles most sides first (the engine's WINDING_LOOSE_FAR_FIELD) against the oracle: below
-# the engine's WINDING_SIDE_MARGIN (0.35), within which of 1/2 it hands the side to the walk above.
-LOOSE_WINDING = 0.2
 # Float32 input coordinates are rounded by half a unit in the last place: 2**-24 of their magnitude per
 # axis; a distance moves by at most sqrt(3) times that for the point and again for the surface.
 FLOAT32_INPUT_ROUNDING = 2.0**-24

@@ -12,7 +12,7 @@ import oracle
 import tolerances as tol
 from badf.server.adf import DistanceField, InvalidInputError
 from badf.server.adf._distance import EXACT_ROUNDING
-from badf.server.adf._tolerances import WINDING_FAR_FIELD, WINDING_LOOSE_FAR_FIELD, WINDING_SIDE_MARGIN
+from badf.server.adf._tolerances import WINDING_FAR_FIELD
 from badf.server.adf._geometry import quantize
 from badf.server.adf._bvh import (
     EMPTY_BOX,
@@ -564,15 +564,11 @@ def _winding_numbers(bvh: BvhView, points: wp.array(dtype=wp.vec3), far_field: f
     w[i] = value
 
 
-@pytest.mark.parametrize("far_field, tolerance", [(WINDING_FAR_FIELD, tol.FAST_WINDING),
-                                                  (WINDING_LOOSE_FAR_FIELD, tol.LOOSE_WINDING)], ids=["engine", "loose"])
 @pytest.mark.parametrize("name", ["spot", "fandisk", "torus", "cut sphere", "sheet"])
-def test_fast_winding_numbers_match_the_oracle_at_the_corners(device, name, far_field, tolerance):
+def test_fast_winding_numbers_match_the_oracle_at_the_corners(device, name):
     """The BVH's winding numbers (exact solid angles near, two-term expansions of far nodes) against the
     float64 oracle, at corners of a depth-6 octree (most lie near the surface, where the expansions of
-    near-but-accepted nodes err most), leaving out corners on the surface, where w is undefined. The loose walk,
-    which settles a side only where |w| lies farther than WINDING_SIDE_MARGIN from 1/2, is held below that."""
-    assert tol.LOOSE_WINDING < WINDING_SIDE_MARGIN
+    near-but-accepted nodes err most), leaving out corners on the surface, where w is undefined."""
     if name == "cut sphere":
         vertices, faces = meshes.sphere()
         faces = faces[vertices[faces].mean(axis=1)[:, 2] < 0.5]
@@ -585,10 +581,10 @@ def test_fast_winding_numbers_match_the_oracle_at_the_corners(device, name, far_
     positions = positions[oracle.nearest(positions, vertices, faces).distance > 1e-6 * oracle.bbox_diagonal(vertices)]
     w = wp.zeros(len(positions), dtype=wp.float32, device=device)
     local = wp.array(field._domain.to_local(positions), dtype=wp.vec3, device=device)  # the BVH's coordinates
-    wp.launch(_winding_numbers, dim=len(positions), inputs=[field._bvh.view(), local, far_field], outputs=[w],
+    wp.launch(_winding_numbers, dim=len(positions), inputs=[field._bvh.view(), local, WINDING_FAR_FIELD], outputs=[w],
               device=device)
     error = np.abs(w.numpy() - oracle.winding_number(positions, vertices, faces))
-    assert error.max() <= tolerance, f"largest error {error.max():.3g} of {len(positions)} corners"
+    assert error.max() <= tol.FAST_WINDING, f"largest error {error.max():.3g} of {len(positions)} corners"
 
 
 def _binary_expansion_walk(field: DistanceField, point: np.ndarray) -> tuple[float, float]:

@@ -40,8 +40,6 @@ from badf.server.adf._tolerances import (
     MIN_ENCLOSED_VOLUME,
     SOLID_BESIDE_REACH,
     WINDING_FAR_FIELD,
-    WINDING_LOOSE_FAR_FIELD,
-    WINDING_SIDE_MARGIN,
 )
 
 SignMethod = Literal["auto", "pseudonormal", "winding", "none"]
@@ -521,44 +519,23 @@ WOUND_CANCELLED = wp.constant(wp.uint8(2))
 
 
 _FAR_FIELD = wp.constant(WINDING_FAR_FIELD)
-_LOOSE_FAR_FIELD = wp.constant(WINDING_LOOSE_FAR_FIELD)
-_SIDE_MARGIN = wp.constant(WINDING_SIDE_MARGIN)
-
-
-@wp.func
-def _decided(w: float, far_field: float) -> bool:
-    """Whether a walk with this far field settles the side: the engine's always; the loose one where |w| lies
-    farther from 1/2 than its error reaches (WINDING_SIDE_MARGIN)."""
-    return far_field == _FAR_FIELD or wp.abs(wp.abs(w) - 0.5) > _SIDE_MARGIN
 
 
 @wp.func
 def wound_side(bvh: BvhView, p: wp.vec3) -> wp.uint8:
-    """WOUND_INSIDE, WOUND_OUTSIDE or WOUND_CANCELLED: the side by float32 winding numbers, unless they cancelled.
-    A loose walk first, the engine's only where that one lands near 1/2 (WINDING_LOOSE_FAR_FIELD)."""
-    far_field = _LOOSE_FAR_FIELD
-    while True:
-        w, cancelled = winding_number(bvh, p, far_field)
-        if cancelled:
-            return WOUND_CANCELLED
-        if _decided(w, far_field):
-            return wp.where(wp.abs(w) > 0.5, WOUND_INSIDE, WOUND_OUTSIDE)
-        far_field = _FAR_FIELD
-    return WOUND_CANCELLED  # not reached: the engine's walk always decides
+    """WOUND_INSIDE, WOUND_OUTSIDE or WOUND_CANCELLED: the side by float32 winding numbers, unless they cancelled."""
+    w, cancelled = winding_number(bvh, p, _FAR_FIELD)
+    if cancelled:
+        return WOUND_CANCELLED
+    return wp.where(wp.abs(w) > 0.5, WOUND_INSIDE, WOUND_OUTSIDE)
 
 
 @wp.func
 def inside_by_winding(bvh: BvhView, p: wp.vec3) -> bool:
     """|w| > 1/2, so an inside-out mesh gives the same answer as the right way round; solid angles in float64
-    where float32 cancels (the corners' kernel takes `wound_side` instead, and this only where it cancelled).
-    A loose walk first, the engine's only where that one lands near 1/2, as `wound_side`."""
-    far_field = _LOOSE_FAR_FIELD
-    while True:
-        w, _cancelled = winding_number_careful(bvh, p, far_field)
-        if _decided(w, far_field):
-            return wp.abs(w) > 0.5
-        far_field = _FAR_FIELD
-    return False  # not reached
+    where float32 cancels (the corners' kernel takes `wound_side` instead, and this only where it cancelled)."""
+    w, _cancelled = winding_number_careful(bvh, p, _FAR_FIELD)
+    return wp.abs(w) > 0.5
 
 
 @wp.func

@@ -51,13 +51,6 @@ SURFACE_SNAP = 1.0e-6
 # Fast winding number: a BVH node is replaced by its dipole when the point is farther from the node's
 # area-weighted centre than this many node radii (Barill et al. 2018 use 2).
 WINDING_FAR_FIELD = 2.0
-# A side (|w| above or below 1/2) is first looked for with nodes expanded from this many radii, a walk of about
-# 0.37 times the nodes (CPU count over the corners of the eight shared meshes at depth 7, 2026-11-28:
-# 55 to 65 visits against 134 to 172). That walk's w moved from the one above by at most 0.127 on those corners
-# (0.11 on seven of the eight). Where it lands within WINDING_SIDE_MARGIN of 1/2 (0 to 2% of those corners; the
-# bunny's holes put most of them there), the side is taken from the walk above instead. No corner's side changed.
-WINDING_LOOSE_FAR_FIELD = 1.25
-WINDING_SIDE_MARGIN = 0.35
 
 # A closed mesh whose enclosed volume is below this fraction of (area x extent) encloses nothing
 # (a doubled sheet, a flat closed shape); "auto" does not pick pseudonormals for it.
