@@ -558,9 +558,9 @@ def test_auto_sign_picks_winding_for_open_meshes_and_it_matches_the_oracle(devic
 
 
 @wp.kernel
-def _winding_numbers(bvh: BvhView, points: wp.array(dtype=wp.vec3), far_field: float, w: wp.array(dtype=wp.float32)):
+def _winding_numbers(bvh: BvhView, points: wp.array(dtype=wp.vec3), w: wp.array(dtype=wp.float32)):
     i = wp.tid()
-    value, _cancelled = winding_number(bvh, points[i], far_field)  # the corners' float32 walk
+    value, _cancelled = winding_number(bvh, points[i])  # the corners' float32 walk
     w[i] = value
 
 
@@ -581,8 +581,7 @@ def test_fast_winding_numbers_match_the_oracle_at_the_corners(device, name):
     positions = positions[oracle.nearest(positions, vertices, faces).distance > 1e-6 * oracle.bbox_diagonal(vertices)]
     w = wp.zeros(len(positions), dtype=wp.float32, device=device)
     local = wp.array(field._domain.to_local(positions), dtype=wp.vec3, device=device)  # the BVH's coordinates
-    wp.launch(_winding_numbers, dim=len(positions), inputs=[field._bvh.view(), local, WINDING_FAR_FIELD], outputs=[w],
-              device=device)
+    wp.launch(_winding_numbers, dim=len(positions), inputs=[field._bvh.view(), local], outputs=[w], device=device)
     error = np.abs(w.numpy() - oracle.winding_number(positions, vertices, faces))
     assert error.max() <= tol.FAST_WINDING, f"largest error {error.max():.3g} of {len(positions)} corners"
 
@@ -653,8 +652,8 @@ def test_the_winding_walk_sums_its_expansions_to_float32_rounding(device, name):
                              meshes.surface_samples(vertices, faces, 1, rng)[:100] + 1e-3 * side])
     local = field._domain.to_local(points)
     w = wp.zeros(len(points), dtype=wp.float32, device=device)
-    wp.launch(_winding_numbers, dim=len(points), inputs=[field._bvh.view(), wp.array(local, dtype=wp.vec3, device=device),
-              WINDING_FAR_FIELD], outputs=[w], device=device)
+    wp.launch(_winding_numbers, dim=len(points), inputs=[field._bvh.view(), wp.array(local, dtype=wp.vec3, device=device)],
+              outputs=[w], device=device)
     reference, margin = np.array([_binary_expansion_walk(field, q) for q in local]).T
     clear = margin > 1e-4
     assert np.count_nonzero(clear) >= 0.9 * len(points), f"only {np.count_nonzero(clear)} points clear of the thresholds"

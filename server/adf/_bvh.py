@@ -47,8 +47,9 @@ from badf.server.adf._geometry import (
     thread_fence,
     triangle_distance_sq,
 )
-from badf.server.adf._tolerances import BOX_SLACK
+from badf.server.adf._tolerances import BOX_SLACK, WINDING_FAR_FIELD
 
+_FAR_FIELD = wp.constant(WINDING_FAR_FIELD)
 _BOX_SLACK = wp.constant(BOX_SLACK)
 _INV_FOUR_PI = wp.constant(1.0 / (4.0 * math.pi))
 LEAF_SIZE = wp.constant(1)
@@ -634,9 +635,8 @@ def _winding_number_function(careful: bool):
     and none is left cancelled; otherwise float32 throughout, whose registers the corners' winding kernel
     can afford."""
 
-    def winding_number(bvh: BvhView, p: wp.vec3, far_field: float):
-        """Generalised winding number of p: exact solid angles near p, two-term expansions of the nodes farther
-        than `far_field` of their radii from it (Barill 2018)."""
+    def winding_number(bvh: BvhView, p: wp.vec3):
+        """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018)."""
         total = float(0.0)
         cancelled = bool(False)
         if bvh.internal_count == 0:
@@ -660,7 +660,7 @@ def _winding_number_function(careful: bool):
                     centre_radius, normal_area = leaf_moments(a, b, c)
                     offset = _xyz(centre_radius) - p
                     dist = wp.length(offset)
-                    if dist > far_field * centre_radius[3]:
+                    if dist > _FAR_FIELD * centre_radius[3]:
                         total += wp.dot(_xyz(normal_area), offset / dist) / (dist * dist)
                     elif wp.static(careful):
                         total += solid_angle_careful(p, a, b, c)
@@ -672,7 +672,7 @@ def _winding_number_function(careful: bool):
                     centre_radius = load_vec4(bvh.node_moments, 4 * child)
                     offset = _xyz(centre_radius) - p
                     dist = wp.length(offset)
-                    if dist > far_field * centre_radius[3]:
+                    if dist > _FAR_FIELD * centre_radius[3]:
                         total += _far_field(bvh, child, offset / dist, dist)
                     else:
                         nodes[count] = child

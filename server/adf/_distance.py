@@ -50,7 +50,7 @@ from badf.server.adf._sign import (
     lends_no_normal,
     wound_side,
 )
-from badf.server.adf._tolerances import SURFACE_SNAP, WINDING_FAR_FIELD
+from badf.server.adf._tolerances import SURFACE_SNAP
 
 # No fused multiply-adds in this module's kernels (nor in the point queries'): with them, the compiler may
 # round the same triangle arithmetic differently where it is inlined at two places, so a seed's distance
@@ -61,7 +61,6 @@ EXACT_ROUNDING = {"fuse_fp": False}
 wp.set_module_options(EXACT_ROUNDING)
 
 _SURFACE_SNAP = wp.constant(SURFACE_SNAP)
-_FAR_FIELD = wp.constant(WINDING_FAR_FIELD)
 # An ADF gradient shorter than this (a distance field's has length 1) has lost its direction: the point
 # is answered exactly instead
 _WEAK_GRADIENT = wp.constant(0.01)
@@ -706,8 +705,8 @@ def _winds_inward(bvh: BvhView, leaf: int, inv_side: float) -> bool:
         return False
     centre = (a + b + c) / 3.0
     step = n * (_SIDE_STEP / (inv_side * length))
-    ahead, _cancelled_ahead = winding_number_careful(bvh, centre + step, _FAR_FIELD)
-    behind, _cancelled_behind = winding_number_careful(bvh, centre - step, _FAR_FIELD)
+    ahead, _cancelled_ahead = winding_number_careful(bvh, centre + step)
+    behind, _cancelled_behind = winding_number_careful(bvh, centre - step)
     return wp.abs(ahead) > wp.abs(behind)
 
 

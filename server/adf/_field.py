@@ -378,14 +378,13 @@ class DistanceField:
         # the frame's counts, copied to the host at its end (pinned, so the copy can be part of a graph)
         self._report = wp.zeros(_REPORT_LENGTH, dtype=wp.int32, device="cpu", pinned=self._device.is_cuda)
         self._report_on_device = b.array("frame.report", _REPORT_LENGTH, wp.int32)  # gathered there, one copy back
-        self._report_sizes: list[int] = []
         self._keep_queued = False  # whether the frame queued the keeping of its corners on the device (queue_keep)
         self._staging = wp.empty(vertex_count, dtype=wp.vec3, device="cpu", pinned=self._device.is_cuda)
         self._failed_update: str | None = None  # why the last update failed after its input was checked
         self._planned = False  # whether the next frame may be planned (from an estimate, or a frame's counts)
         self._estimated = False  # whether the next frame's plan is an estimate (the first frame's, from its area)
         self._fit_buffers = False  # whether the next frame sizes the buffers anew (after an estimated frame)
-        self._graph = None  # (key, graph, stage names, report sizes, keep queued) of the captured planned frame
+        self._graph = None  # (key, graph, stage names, keep queued) of the captured planned frame
         self._graph_candidate = None  # key of the last planned frame run eagerly
         self.use_graphs = True
         self._bvh = Bvh(len(f), with_moments=self._sign != "none", buffers=b)
@@ -750,7 +749,7 @@ class DistanceField:
                                   self._depth, self._band, coherent=self._coherence,
                                   choose_sign=functools.partial(self._normals.choose_frame_method, self._vertices,
                                                                 self._bvh.view()))
-        self._report_sizes = self._queue_report()
+        self._queue_report()
 
     def _run_planned(self, domain_moved: bool) -> None:
         """A planned frame: eagerly on the CPU, after the domain moved (it rebuilds the BVH), or the first
@@ -764,10 +763,9 @@ class DistanceField:
         split = self._corners.planned_split(self._octree.corner_count, self._bvh.internal_count)
         key = self._plan_key(split)
         if self._graph is not None and self._graph[0] == key:
-            _, graph, stages, sizes, self._keep_queued = self._graph
+            _, graph, stages, self._keep_queued = self._graph
             wp.capture_launch(graph)
             self._clock.replayed(stages)
-            self._report_sizes = sizes
             return
         if self._graph_candidate != key:
             # run it once eagerly: any buffer (and the sort's scratch) that must grow does so outside a capture
@@ -790,7 +788,7 @@ class DistanceField:
             self._pipeline(measure=False)
             return
         stages = [name for name in self._clock.recorded if name not in stages_before]
-        self._graph = (key, graph, stages, self._report_sizes, self._keep_queued)
+        self._graph = (key, graph, stages, self._keep_queued)
         self._counters.graph_captures += 1
         wp.capture_launch(graph)
 
@@ -803,11 +801,11 @@ class DistanceField:
             c.far_cells_for(self._normals.code),
         )
 
-    def _queue_report(self) -> list[int]:
+    def _queue_report(self) -> None:
         """Gather the frame's counts on the device, with whether each fits its capacity, and queue the keeping of
-        the frame (which takes effect only if they all do) and one copy of the counts to the host; returns the
-        capacity each must fit. The layout (`_take_report`): the sizes, the sign's frame method, the levels'
-        first nodes, whether parts overlap, whether seams tore, the surface's own cells, whether it all fitted."""
+        the frame (which takes effect only if they all do) and one copy of the counts to the host. The layout
+        (`_take_report`): the sizes, the sign's frame method, the levels' first nodes, whether parts overlap, whether
+        seams tore, the surface's own cells, whether it all fitted."""
         sizes = self._octree.report()
         assert len(sizes) == _REPORT_SIZES
         (a0, i0, c0), (a1, i1, c1), (a2, i2, c2), (a3, i3, c3) = sizes
@@ -818,23 +816,21 @@ class DistanceField:
                   outputs=[self._report_on_device], device=self._device)
         self._keep_queued = self._corners.queue_keep(self._report_on_device, self._fits_at)
         wp.copy(self._report, self._report_on_device, count=self._fits_at + 1)
-        return [c0, c1, c2, c3]
 
     @property
     def _fits_at(self) -> int:
         return _REPORT_SIZES + 5 + self._depth
 
     def _take_report(self) -> bool:
-        """Wait for the frame and read its counts; whether every one fitted its capacity."""
+        """Wait for the frame and read its counts; whether every one fitted its capacity (the device's verdict,
+        which the keeping of the frame took too)."""
         if self._device.is_cuda:
             wp.synchronize_stream(self._stream)
         report = self._report.numpy()
-        k = len(self._report_sizes)
-        counts = [int(x) for x in report[:k]]
-        fits = all(count <= capacity for count, capacity in zip(counts, self._report_sizes))
-        assert fits == (report[self._fits_at] == 1), "the device's and the host's fit disagree"
-        if not fits:
+        if report[self._fits_at] != 1:
             return False
+        k = _REPORT_SIZES
+        counts = [int(x) for x in report[:k]]
         self._octree.take_counts(counts, report[k + 1 : k + 2 + self._depth], int(report[k + 4 + self._depth]))
         self._normals.set_frame_method(int(report[k]), int(report[k + 2 + self._depth]), int(report[k + 3 + self._depth]))
         return True

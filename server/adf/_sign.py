@@ -39,7 +39,6 @@ from badf.server.adf._tolerances import (
     DEGENERATE_AREA,
     MIN_ENCLOSED_VOLUME,
     SOLID_BESIDE_REACH,
-    WINDING_FAR_FIELD,
 )
 
 SignMethod = Literal["auto", "pseudonormal", "winding", "none"]
@@ -518,13 +517,10 @@ WOUND_INSIDE = wp.constant(wp.uint8(1))
 WOUND_CANCELLED = wp.constant(wp.uint8(2))
 
 
-_FAR_FIELD = wp.constant(WINDING_FAR_FIELD)
-
-
 @wp.func
 def wound_side(bvh: BvhView, p: wp.vec3) -> wp.uint8:
     """WOUND_INSIDE, WOUND_OUTSIDE or WOUND_CANCELLED: the side by float32 winding numbers, unless they cancelled."""
-    w, cancelled = winding_number(bvh, p, _FAR_FIELD)
+    w, cancelled = winding_number(bvh, p)
     if cancelled:
         return WOUND_CANCELLED
     return wp.where(wp.abs(w) > 0.5, WOUND_INSIDE, WOUND_OUTSIDE)
@@ -534,7 +530,7 @@ def wound_side(bvh: BvhView, p: wp.vec3) -> wp.uint8:
 def inside_by_winding(bvh: BvhView, p: wp.vec3) -> bool:
     """|w| > 1/2, so an inside-out mesh gives the same answer as the right way round; solid angles in float64
     where float32 cancels (the corners' kernel takes `wound_side` instead, and this only where it cancelled)."""
-    w, _cancelled = winding_number_careful(bvh, p, _FAR_FIELD)
+    w, _cancelled = winding_number_careful(bvh, p)
     return wp.abs(w) > 0.5
 
 
