@@ -761,8 +761,8 @@ class DistanceField:
         self._queue_report()
 
     def _run_planned(self, domain_moved: bool) -> None:
-        """A planned frame: eagerly on the CPU, after the domain moved (it rebuilds the BVH), or the first
-        time with these sizes; else from a graph."""
+        """A planned frame: eagerly on the CPU or the first time with these sizes (a frame that moved the domain,
+        which rebuilds the BVH, has sizes of its own); else from a graph."""
         if not (self._device.is_cuda and self.use_graphs):
             self._pipeline(measure=False, domain_moved=domain_moved)
             return
