@@ -1229,6 +1229,48 @@ def test_tiny_and_huge_meshes_match_the_oracle(device, scale):
         assert np.array_equal((exact.distance < 0)[clear], (np.abs(winding) > 0.5)[clear])
 
 
+def test_shared_out_searches_read_no_cut_made_after_a_side_stream_was_forked(device, monkeypatch):
+    """A BVH cut not yet made is launched on the frame's stream when first asked for, and a side stream waits only
+    for what was queued before its fork: every cut a frame's searches read must be made before any fork. On an
+    H200 (2026-11-29) the far corners' searches read a cut made after their fork and left 1,276 of 13,910 first-
+    frame corners wrong. Held here on the order of the calls, which the CPU back-end runs in order anyway: on the
+    build, a coherent frame, and a frame that moves the domain (a new BVH, whose cuts are made anew)."""
+    from badf.server.adf import _buffers, _bvh, _distance
+    from badf.server.adf._distance import SearchSplit
+
+    open_forks: set[int] = set()
+    made, made_while_forked = [], []
+    fork, join, cut = _buffers.SideStream.fork, _buffers.SideStream.join, _bvh.Bvh.cut
+
+    def tracked_fork(self):
+        open_forks.add(id(self))
+        return fork(self)
+
+    def tracked_join(self, stream):
+        open_forks.discard(id(self))
+        return join(self, stream)
+
+    def tracked_cut(self, levels):
+        if _bvh.cut_bits(levels) not in self._cuts:
+            made.append(levels)
+            if open_forks:
+                made_while_forked.append(levels)
+        return cut(self, levels)
+
+    monkeypatch.setattr(_buffers.SideStream, "fork", tracked_fork)
+    monkeypatch.setattr(_buffers.SideStream, "join", tracked_join)
+    monkeypatch.setattr(_bvh.Bvh, "cut", tracked_cut)
+    monkeypatch.setattr(_distance.CornerField, "far_cells", 2)
+    vertices, faces = meshes.load("spot")
+    extent = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
+    field = DistanceField(vertices, faces, depth=5, device=device)
+    field._corners.split = SearchSplit(4, 4, 64)
+    field.update(vertices * np.float32(1.01))
+    field.update(vertices + np.float32(2.0 * extent))
+    assert len(made) >= 3  # the far corners' cut of the build and of the moved frame, and the long searches' cut
+    assert made_while_forked == []
+
+
 def test_points_far_beyond_a_tiny_mesh_get_finite_exact_distances(device):
     """A point 1e18 from a mesh of size 1e-30 is 1e48 of its sizes away, past float32's range when squared:
     such points are moved in along the line to the domain's centre and the move added back."""

@@ -193,6 +193,14 @@ class CornerField:
         `choose_sign(stream)` queues what decides the frame's sign method on that stream (None: the current
         one); it runs beside the searches, before the signs."""
         b = self.buffers
+        split, far_cells = self._shared_out(expected_count, bvh.internal_count, sign.method)
+        self._last_split, self._last_far_cells = split, far_cells
+        splitting = split.budget > 0
+        # the BVH cuts the shared-out searches read, made first: a cut not yet made is launched on the current
+        # stream, and the far corners' searches run on a side stream that waits only for what was queued before
+        # its fork (a cut made after it was read unwritten on an H200, 2026-11-29)
+        far_cut = cuts(_FAR_SPLIT[0]) if far_cells > 0 else None
+        long_cut = cuts(split.levels) if splitting else None
         choosing = None
         if choose_sign is not None:
             choosing = self._choosing.fork()
@@ -210,9 +218,6 @@ class CornerField:
             shift = ((self._previous_centre - centre) * scale - self._previous_side * scale / 2.0).astype(np.float32)
             previous_origin = wp.vec3(*shift)
             previous_cell = self._previous_side * scale / float(1 << depth)
-        split, far_cells = self._shared_out(expected_count, bvh.internal_count, sign.method)
-        self._last_split, self._last_far_cells = split, far_cells
-        splitting = split.budget > 0
         by_winding = sign.method == SIGN_WINDING
         long_corner, long_start, long_best, inside, seeds, far_corner, far_start, far_best = self.scratch.take(
             *self.scratch_layout(capacity, expected_count, bvh.internal_count, sign.method))
@@ -236,7 +241,7 @@ class CornerField:
         if far_cells > 0:
             levels, groups = _FAR_SPLIT
             wp.launch(_split_searches, dim=groups << cut_bits(levels),
-                      inputs=[corner_keys, origin, cell, bvh, cuts(levels), cut_bits(levels), groups, far_count,
+                      inputs=[corner_keys, origin, cell, bvh, far_cut, cut_bits(levels), groups, far_count,
                               far_capacity, far_corner, far_start],
                       outputs=[far_best], device=self.device, stream=beside)
             wp.launch(_gather_split, dim=groups, inputs=[groups, far_count, far_capacity, far_corner, far_best],
@@ -253,7 +258,7 @@ class CornerField:
         if splitting:
             bits = cut_bits(split.levels)
             wp.launch(_split_searches, dim=split.groups << bits,
-                      inputs=[corner_keys, origin, cell, bvh, cuts(split.levels), bits, split.groups,
+                      inputs=[corner_keys, origin, cell, bvh, long_cut, bits, split.groups,
                               long_count, capacity, long_corner, long_start],
                       outputs=[long_best], device=self.device)
             wp.launch(_gather_split, dim=split.groups,
