@@ -979,6 +979,73 @@ def test_planned_frames_equal_measured_frames(device):
     assert np.abs(values[pick] - truth).max() <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frames[-1])
 
 
+@pytest.mark.parametrize("name,depth", [("spot", 6), ("stanford-bunny", 5)])
+def test_a_mesh_thrown_every_frame_keeps_its_side_and_its_field(device, monkeypatch, name, depth):
+    """A mesh thrown further every frame moves the domain every frame but keeps its side, so its lattice and its
+    planned frame stay the same: on CUDA the frame (BVH build included) is captured once and replayed, with last
+    frame's lattice read on the device. Its fields equal, bit for bit, those of an object that runs every frame
+    kernel by kernel and one without coherence, and its corners are exact. A closed mesh (pseudonormals) and an
+    open one (winding numbers)."""
+    vertices, faces = meshes.load(name)
+    extent = float(np.ptp(vertices, axis=0).max())
+    rng = np.random.default_rng(5)
+    steps = rng.uniform(-0.8, 0.8, size=(7, 3)) * extent  # each past the margin: every frame moves
+    frames = [(vertices + np.float32(s)).astype(np.float32) for s in np.cumsum(steps, axis=0)]
+    points = rng.uniform(-0.7, 0.7, size=(800, 3)).astype(np.float32) * extent
+    thrown = DistanceField(vertices, faces, depth=depth, device=device)
+    eager = DistanceField(vertices, faces, depth=depth, device=device)
+    eager.use_graphs = False
+    fresh = DistanceField(vertices, faces, depth=depth, coherence=False, device=device)
+    replay, replays = wp.capture_launch, []
+    monkeypatch.setattr(wp, "capture_launch", lambda graph, *a, **k: (replays.append(1), replay(graph, *a, **k)))
+    sides = []
+    for k, frame in enumerate(frames):
+        for field in (thrown, eager, fresh):
+            field.update(frame)
+        sides.append(thrown.info()["domain"]["side"])
+        centre = frame.mean(axis=0)
+        _assert_same_fields(thrown, eager, points + centre)
+        for got, expected in zip(thrown.corner_samples(), fresh.corner_samples()):
+            np.testing.assert_array_equal(got, expected)
+    stats = thrown.stats()
+    assert stats["domain_moves"] == len(frames) and stats["measured_frames"] == 0
+    assert len(set(sides)) == 1  # every move keeps the side the build fitted
+    assert stats["counts"]["coherent_frame"]  # coherence holds across the moves
+    if device.startswith("cuda"):  # the first frames after the build settle its plan; then one capture, replayed
+        assert stats["graph_captures"] == 1 and len(replays) >= len(frames) - 3
+    positions, values, _ = thrown.corner_samples()
+    pick = rng.choice(len(positions), 400, replace=False)
+    truth = oracle.signed_distance(positions[pick], frames[-1], faces)
+    assert np.abs(values[pick] - truth).max() <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frames[-1])
+
+
+def test_a_move_keeps_the_side_only_while_the_mesh_fits_it_closely(device):
+    """A frame that moves the domain keeps the cube's side while a fresh fit's would be at most 5% smaller (or
+    larger by no more than the float32 rounding of a centre); a mesh that grew, or shrank further, gets a fresh fit
+    with 2.5% room; a frame that stays in the domain keeps it as before. The field stays exact throughout."""
+    vertices, faces = meshes.sphere()
+    field = DistanceField(vertices, faces, depth=4, device=device)
+
+    def side_after(frame) -> float:
+        field.update(frame)
+        positions, values, _ = field.corner_samples()
+        truth = oracle.signed_distance(positions, frame, faces)
+        assert np.abs(values - truth).max() <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frame)
+        return field.info()["domain"]["side"]
+
+    first = field.info()["domain"]["side"]
+    assert side_after(vertices + np.float32(10.0)) == first
+    assert side_after(vertices * np.float32(0.97) + np.float32(20.0)) == first  # 3% smaller: kept
+    # 10% smaller: fitted again, with 2.5% room to grow or shrink on later moves
+    shrunk = side_after(vertices * np.float32(0.9) + np.float32(30.0))
+    assert shrunk == pytest.approx(0.9 * 1.025 * first, rel=1e-5)
+    assert side_after(vertices * np.float32(0.91) + np.float32(35.0)) == shrunk  # within the room: kept
+    grown = side_after(vertices * np.float32(0.95) + np.float32(40.0))  # larger than the room: fitted again
+    assert grown == pytest.approx(0.95 * 1.025 * first, rel=1e-5)
+    assert side_after(vertices * np.float32(0.95) + np.float32(40.01)) == grown  # inside: no move at all
+    assert field.stats()["domain_moves"] == 5
+
+
 def test_a_frame_that_outgrows_its_plan_leaves_last_frames_bounds_as_they_were(device, monkeypatch):
     """A planned frame queues the keeping of its corners' faces for the next frame on the device, to take effect
     only if its counts fit their plan: one that outgrew them leaves last frame's keys, faces and count as they

@@ -48,10 +48,12 @@ class DeviceBuffers:
         arr = self._arrays.get(name)
         return arr is not None and arr.shape[0] >= count and not self._shrinks(name, count)
 
-    def release(self, prefix: str) -> None:
-        """Give back every array whose name starts with `prefix` (freed once nothing else holds it)."""
-        for name in [name for name in self._arrays if name.startswith(prefix)]:
+    def release(self, prefix: str) -> bool:
+        """Give back every array whose name starts with `prefix` (freed once nothing else holds it); whether any."""
+        names = [name for name in self._arrays if name.startswith(prefix)]
+        for name in names:
             del self._arrays[name]
+        return bool(names)
 
     @contextlib.contextmanager
     def fit(self):

@@ -177,6 +177,12 @@ class CornerField:
         self._previous_face = buffers.ensure("corner.prev_face", 1, wp.int32)
         self._previous_centre: np.ndarray | None = None
         self._previous_side = 0.0
+        # last frame's lattice in this frame's local coordinates (origin, 1 / cell), written on the host before
+        # each frame (stage_lattice) and read on the device, so a frame captured as a CUDA graph after the domain
+        # moved replays for any later move: on CUDA it travels through a pinned buffer, copied within the frame
+        self._lattice = buffers.ensure("corner.prev_lattice", 1, wp.vec4)
+        self._lattice_host = (wp.zeros(1, dtype=wp.vec4, device="cpu", pinned=True) if self.device.is_cuda
+                              else self._lattice)
         self.split: SearchSplit | None = None  # None: SearchSplit.automatic for each compute
         self._last_split = _WHOLE
         self._last_far_cells = 0
@@ -208,16 +214,11 @@ class CornerField:
         self.value = b.ensure("corner.value", capacity, wp.float32)
         self.leaf = b.ensure("corner.leaf", capacity, wp.int32)
         use_previous = coherent and self._previous_capacity > 0
-        centre, scale, side, origin = domain.centre, domain.scale, domain.local_side, domain.origin
+        centre, side, origin = domain.centre, domain.local_side, domain.origin
         band = domain.local_band(band)
         cell = side / float(1 << depth)
-        previous_origin = wp.vec3(0.0, 0.0, 0.0)
-        previous_cell = cell
-        if use_previous:
-            # last frame's lattice in this frame's local coordinates (its domain may have moved)
-            shift = ((self._previous_centre - centre) * scale - self._previous_side * scale / 2.0).astype(np.float32)
-            previous_origin = wp.vec3(*shift)
-            previous_cell = self._previous_side * scale / float(1 << depth)
+        if use_previous and self._lattice_host is not self._lattice:
+            wp.copy(self._lattice, self._lattice_host)  # as stage_lattice left it before the frame
         by_winding = sign.method == SIGN_WINDING
         long_corner, long_start, long_best, inside, seeds, far_corner, far_start, far_best = self.scratch.take(
             *self.scratch_layout(capacity, expected_count, bvh.internal_count, sign.method))
@@ -226,7 +227,7 @@ class CornerField:
             long_count.zero_()
         seeding = [corner_keys, count, capacity, origin, cell, 1.0 / side, depth, bvh, band or 0.0,
                    1 if use_previous else 0, self._previous_keys, self._previous_face, self._previous_count,
-                   self._previous_capacity, previous_origin, 1.0 / previous_cell]
+                   self._previous_capacity, self._lattice]
         if far_cells > 0:
             # corners far from the surface, listed with their seeds' bounds and searched by subtree beside the
             # others, from the start of the stage (their single walks would be the launch's longest)
@@ -371,9 +372,19 @@ class CornerField:
         return levels
 
     def coherence_key(self) -> tuple:
-        """What `compute` takes by value from last frame (for reusing a captured frame)."""
-        centre = None if self._previous_centre is None else tuple(self._previous_centre)
-        return self._previous_capacity, centre, self._previous_side
+        """What `compute` takes by value from last frame (for reusing a captured frame): where last frame's
+        lattice lies is read on the device (stage_lattice)."""
+        return (self._previous_capacity,)
+
+    def stage_lattice(self, domain, depth: int) -> None:
+        """Write where last frame's lattice lies in this frame's local coordinates (its domain may have moved),
+        for the next `compute` or a replay of one; call before each frame."""
+        if self._previous_centre is None:
+            return
+        scale = domain.scale
+        origin = (self._previous_centre - domain.centre) * scale - self._previous_side * scale / 2.0
+        inv_cell = float(1 << depth) / (self._previous_side * scale)
+        self._lattice_host.numpy()[0] = np.array([*origin, inv_cell], dtype=np.float32)
 
     @property
     def search_budget(self) -> int:
@@ -471,12 +482,12 @@ _nearest_past_ties = _banded_search(nearest_leaf_past_ties, leaf_distance_held_t
 @wp.func
 def _corner_seed(bvh: BvhView, p: wp.vec3, origin: wp.vec3, inv_side: float, depth: int, coherent: int,
                  previous_keys: wp.array(dtype=wp.int32), previous_face: wp.array(dtype=wp.int32),
-                 previous_count: wp.array(dtype=wp.int32), previous_capacity: int, previous_origin: wp.vec3,
-                 previous_inv_cell: float) -> int:
+                 previous_count: wp.array(dtype=wp.int32), previous_capacity: int,
+                 previous_lattice: wp.array(dtype=wp.vec4)) -> int:
     """A corner's seed leaf: by last frame's nearest face (coherent), else by Morton key."""
     if coherent != 0:
         return coherent_seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity,
-                             previous_origin, previous_inv_cell)
+                             previous_lattice)
     return spatial_seed(bvh, p, origin, inv_side)
 
 
@@ -724,10 +735,11 @@ def _lattice_point(key: wp.int64, origin: wp.vec3, cell: float) -> wp.vec3:
 @wp.func
 def coherent_seed(bvh: BvhView, p: wp.vec3, depth: int, previous_keys: wp.array(dtype=wp.int32),
                   previous_face: wp.array(dtype=wp.int32), previous_count: wp.array(dtype=wp.int32),
-                  previous_capacity: int, previous_origin: wp.vec3, previous_inv_cell: float) -> int:
+                  previous_capacity: int, previous_lattice: wp.array(dtype=wp.vec4)) -> int:
     """The leaf of the face nearest last frame's nearest lattice point to p (the same point while the
     domain stays), or its neighbour in Morton order: that face bounds p's search either way."""
-    q = (p - previous_origin) * previous_inv_cell
+    lattice = previous_lattice[0]  # origin, 1 / cell (CornerField.stage_lattice)
+    q = (p - wp.vec3(lattice[0], lattice[1], lattice[2])) * lattice[3]
     top = 1 << depth
     key = morton3(
         wp.clamp(int(wp.round(q[0])), 0, top),
@@ -785,8 +797,7 @@ def corner_searches(
     previous_face: wp.array(dtype=wp.int32),
     previous_count: wp.array(dtype=wp.int32),
     previous_capacity: int,
-    previous_origin: wp.vec3,
-    previous_inv_cell: float,
+    previous_lattice: wp.array(dtype=wp.vec4),
     budget: int,
     seeded: int,
     seeds: wp.array(dtype=wp.int32),
@@ -821,7 +832,7 @@ def corner_searches(
             seed = -2 - seed
     else:
         seed = _corner_seed(bvh, p, origin, inv_side, depth, coherent, previous_keys, previous_face, previous_count,
-                            previous_capacity, previous_origin, previous_inv_cell)
+                            previous_capacity, previous_lattice)
     best_leaf, best_sq, finished = _nearest_with_band(bvh, p, seed, band, budget)
     _write_answer(i, best_leaf, best_sq, seed, band, distance, nearest)
     if not finished:
@@ -844,8 +855,7 @@ def list_far_corners(
     previous_face: wp.array(dtype=wp.int32),
     previous_count: wp.array(dtype=wp.int32),
     previous_capacity: int,
-    previous_origin: wp.vec3,
-    previous_inv_cell: float,
+    previous_lattice: wp.array(dtype=wp.vec4),
     far_sq: float,
     far_capacity: int,
     seeds: wp.array(dtype=wp.int32),
@@ -865,7 +875,7 @@ def list_far_corners(
         return
     p = _lattice_point(corner_keys[i], origin, cell)
     seed = _corner_seed(bvh, p, origin, inv_side, depth, coherent, previous_keys, previous_face, previous_count,
-                        previous_capacity, previous_origin, previous_inv_cell)
+                        previous_capacity, previous_lattice)
     seeds[i] = seed
     best, best_sq = _seed_bound(bvh, p, seed, band)
     if best_sq < far_sq:

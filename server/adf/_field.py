@@ -69,7 +69,10 @@ from badf.server.adf._tolerances import (
     MAX_KERNEL_BAND,
     MIN_BAND,
     QUERY_CHUNK,
+    REDOMAIN_KEEP_SIDE,
     REDOMAIN_MIN_FILL,
+    REDOMAIN_REFIT_ROOM,
+    REDOMAIN_SIDE_SLACK,
     SOLID_BESIDE_SAMPLE,
     SOLID_WATCH_SAMPLE,
 )
@@ -176,6 +179,11 @@ class _Domain:
         if float32_centre:
             centre = snapped
             side += 2.0 * shift  # the centre's float32 rounding must not push the mesh out of the cube
+        if previous is not None and side <= (1.0 + REDOMAIN_SIDE_SLACK) * previous.side <= (
+                1.0 + REDOMAIN_SIDE_SLACK) * REDOMAIN_KEEP_SIDE * side:  # a move that keeps the side, and lattice
+            return _Domain(centre, previous.side, previous.scale, float32_centre)
+        if previous is not None:
+            side *= REDOMAIN_REFIT_ROOM
         return _Domain(centre, side, math.ldexp(1.0, -round(math.log2(side))), float32_centre)
 
     def holds(self, lo: np.ndarray, hi: np.ndarray) -> bool:
@@ -672,8 +680,8 @@ class DistanceField:
         object's larger sort would otherwise reallocate.
         """
         wall = time.perf_counter()
-        if not domain_moved:
-            self._bvh.give_back_build()
+        if not domain_moved and self._bvh.give_back_build():
+            self._graph = None  # a graph that rebuilt the BVH holds what was given back
         self._medial_marked = False  # the leaves the medial surface crosses, marked on demand (query)
         clock = self._clock
         clock.reset()
@@ -691,6 +699,7 @@ class DistanceField:
                     wp.launch(_recentre, dim=len(local_vertices),
                               inputs=[self._vertices, wp.vec3(*self._domain.centre), self._domain.scale])
                 self._normals.upload_extent(extent)
+                self._corners.stage_lattice(self._domain, self._depth)
             fits = self._planned and self._planned_frame(domain_moved)
             if not fits:
                 self._graph = None
@@ -752,16 +761,17 @@ class DistanceField:
         self._queue_report()
 
     def _run_planned(self, domain_moved: bool) -> None:
-        """A planned frame: eagerly on the CPU, after the domain moved (it rebuilds the BVH), or the first
-        time with these sizes; else from a graph."""
-        if domain_moved:
-            # a new BVH: a graph captured over the old one (its cut, for instance) must not be replayed
-            self._graph = self._graph_candidate = None
-        if domain_moved or not (self._device.is_cuda and self.use_graphs):
+        """A planned frame: eagerly on the CPU or the first time with these sizes (a frame that moved the domain,
+        which rebuilds the BVH, has sizes of its own); else from a graph."""
+        if not (self._device.is_cuda and self.use_graphs):
             self._pipeline(measure=False, domain_moved=domain_moved)
             return
         split = self._corners.planned_split(self._octree.corner_count, self._bvh.internal_count)
-        key = self._plan_key(split)
+        key = self._plan_key(split, domain_moved)
+        # the cuts a frame's searches read are worked out outside its graph and kept until the next BVH build, so
+        # after one (a frame that moved the domain) they are worked out again, for the graph and the capture alike
+        for levels in self._corners.cut_levels(split, self._normals.code):
+            self._bvh.cut(levels)
         if self._graph is not None and self._graph[0] == key:
             _, graph, stages, self._keep_queued = self._graph
             wp.capture_launch(graph)
@@ -771,33 +781,34 @@ class DistanceField:
             # run it once eagerly: any buffer (and the sort's scratch) that must grow does so outside a capture
             self._graph_candidate = key
             self._graph = None
-            self._pipeline(measure=False)
+            self._pipeline(measure=False, domain_moved=domain_moved)
             return
-        for levels in self._corners.cut_levels(split, self._normals.code):
-            self._bvh.cut(levels)  # computed before the capture, kept until the next BVH build
         stages_before = list(self._clock.recorded)
         try:
             wp.capture_begin(self._device, stream=self._stream, force_module_load=False)
             try:
-                self._pipeline(measure=False)
+                self._pipeline(measure=False, domain_moved=domain_moved)
             finally:
                 graph = wp.capture_end(self._device, stream=self._stream)
         except Exception as error:  # a driver or Warp build that cannot capture: run kernel by kernel
             log.warning("CUDA graph capture failed on %s (%s); planned frames run kernel by kernel", self._device, error)
             self.use_graphs = False
-            self._pipeline(measure=False)
+            self._pipeline(measure=False, domain_moved=domain_moved)
             return
         stages = [name for name in self._clock.recorded if name not in stages_before]
         self._graph = (key, graph, stages, self._keep_queued)
         self._counters.graph_captures += 1
         wp.capture_launch(graph)
 
-    def _plan_key(self, split) -> tuple:
-        """Everything a planned frame's launches take by value; a graph is replayed only for an equal key."""
+    def _plan_key(self, split, domain_moved: bool) -> tuple:
+        """Everything a planned frame's launches take by value; a graph is replayed only for an equal key. The
+        kernels work in local coordinates, which the side alone sets (the centre is taken off on the way up), so a
+        frame that moves the domain without changing its side replays the graph of the last such frame."""
         o, c = self._octree, self._corners
+        region = None if self._region is None else tuple(self._domain.to_local_float64(self._region).ravel())
         return (
             o.cell_set.planned, o.surface_planned, o.node_capacity, o.internal_capacity, o.corner_set.planned,
-            tuple(self._domain.centre), self._domain.side, c.coherence_key(), (split.budget, split.levels, split.groups),
+            self._domain.side, region, domain_moved, c.coherence_key(), (split.budget, split.levels, split.groups),
             c.far_cells_for(self._normals.code),
         )
 
