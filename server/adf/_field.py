@@ -71,7 +71,6 @@ from badf.server.adf._tolerances import (
     QUERY_CHUNK,
     REDOMAIN_KEEP_SIDE,
     REDOMAIN_MIN_FILL,
-    REDOMAIN_REFIT_ROOM,
     REDOMAIN_SIDE_SLACK,
     SOLID_BESIDE_SAMPLE,
     SOLID_WATCH_SAMPLE,
@@ -182,8 +181,6 @@ class _Domain:
         if previous is not None and side <= (1.0 + REDOMAIN_SIDE_SLACK) * previous.side <= (
                 1.0 + REDOMAIN_SIDE_SLACK) * REDOMAIN_KEEP_SIDE * side:  # a move that keeps the side, and lattice
             return _Domain(centre, previous.side, previous.scale, float32_centre)
-        if previous is not None:
-            side *= REDOMAIN_REFIT_ROOM
         return _Domain(centre, side, math.ldexp(1.0, -round(math.log2(side))), float32_centre)
 
     def holds(self, lo: np.ndarray, hi: np.ndarray) -> bool:

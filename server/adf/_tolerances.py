@@ -20,12 +20,8 @@ REDOMAIN_MIN_FILL = 0.4
 # coordinates, lattice and planned frame (which is then replayed from a CUDA graph). The slack covers the float32
 # rounding of the new centre (about 1e-7 of it), which a fresh fit adds to the side; the margin above still holds
 # the mesh. A kept side costs at most 5% of the finest cell's resolution against a fresh fit.
-# Where a move fits the side afresh, it takes this much more than a fresh fit, the middle of that window, so a mesh
-# that grows or shrinks a little from frame to frame (a wobbling armadillo thrown every frame refitted and was
-# captured again every few frames) keeps it for a while.
 REDOMAIN_KEEP_SIDE = 1.05
 REDOMAIN_SIDE_SLACK = 2.0**-8
-REDOMAIN_REFIT_ROOM = 1.025
 
 # Surface cells: a triangle is tested against each finest cell grown by this fraction of the cell size,
 # so rounding never drops a cell the surface touches (a few extra cells are harmless).
