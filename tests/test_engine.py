@@ -998,7 +998,7 @@ def test_a_mesh_thrown_every_frame_keeps_its_side_and_its_field(device, monkeypa
     fresh = DistanceField(vertices, faces, depth=depth, coherence=False, device=device)
     replay, replays = wp.capture_launch, []
     monkeypatch.setattr(wp, "capture_launch", lambda graph, *a, **k: (replays.append(1), replay(graph, *a, **k)))
-    sides = []
+    sides = [thrown.info()["domain"]["side"]]
     for k, frame in enumerate(frames):
         for field in (thrown, eager, fresh):
             field.update(frame)
@@ -1009,10 +1009,13 @@ def test_a_mesh_thrown_every_frame_keeps_its_side_and_its_field(device, monkeypa
             np.testing.assert_array_equal(got, expected)
     stats = thrown.stats()
     assert stats["domain_moves"] == len(frames) and stats["measured_frames"] == 0
-    assert len(set(sides)) == 1  # every move keeps the side the build fitted
+    # every move keeps the side, but for at most one: the first whose centre's float32 rounding needs more than
+    # the build's side allows for takes the side any rounding could need, which the later moves keep
+    assert sum(a != b for a, b in zip(sides, sides[1:])) <= 1 and sides[-1] == max(sides)
     assert stats["counts"]["coherent_frame"]  # coherence holds across the moves
-    if device.startswith("cuda"):  # the first frames after the build settle its plan; then one capture, replayed
-        assert stats["graph_captures"] == 1 and len(replays) >= len(frames) - 3
+    if device.startswith("cuda"):  # the first frames after the build settle its plan; then a capture per side
+        kept = len(set(sides[1:]))
+        assert stats["graph_captures"] <= kept and len(replays) >= len(frames) - 3 - 2 * (kept - 1)
     positions, values, _ = thrown.corner_samples()
     pick = rng.choice(len(positions), 400, replace=False)
     truth = oracle.signed_distance(positions[pick], frames[-1], faces)
@@ -1020,9 +1023,9 @@ def test_a_mesh_thrown_every_frame_keeps_its_side_and_its_field(device, monkeypa
 
 
 def test_a_move_keeps_the_side_only_while_the_mesh_fits_it_closely(device):
-    """A frame that moves the domain keeps the cube's side while a fresh fit's would be at most 5% smaller (or
-    larger by no more than the float32 rounding of a centre); a mesh that grew, or shrank further, gets a fresh fit;
-    a frame that stays in the domain keeps it as before. The field stays exact throughout."""
+    """A frame that moves the domain keeps the cube's side while a fresh fit's would be at most 5% smaller, never
+    larger; a mesh that grew, or shrank further, gets a fresh fit; a frame that stays in the domain keeps it as
+    before. The field stays exact throughout."""
     vertices, faces = meshes.sphere()
     field = DistanceField(vertices, faces, depth=4, device=device)
 
@@ -1042,6 +1045,21 @@ def test_a_move_keeps_the_side_only_while_the_mesh_fits_it_closely(device):
     assert grown == pytest.approx(0.95 * first, rel=1e-5)
     assert side_after(vertices * np.float32(0.95) + np.float32(40.01)) == grown  # inside: no move at all
     assert field.stats()["domain_moves"] == 4
+
+
+def test_a_mesh_moved_back_and_forth_by_the_margin_keeps_its_domain(device):
+    """The soak's cube, moved back and forth along x by up to the domain's margin: the one move it makes keeps a
+    cube no smaller than a fresh fit's, which holds every later frame. A kept side a rounding smaller (the side
+    fitted at the build, whose centre was a float32 number) moved the domain back and forth every few frames, and
+    each move left the BVH's build buffers held until the next frame that kept the domain: the soak's device
+    bytes, read at two moments, differed by a multiple of them."""
+    from badf.bench.soak import cube, frame_vertices
+
+    base, faces = cube(8)
+    field = DistanceField(base, faces, depth=4, device=device)
+    for frame in range(1, 40):
+        field.update(frame_vertices(base, frame))
+    assert field.stats()["domain_moves"] == 1
 
 
 def test_a_frame_that_outgrows_its_plan_leaves_last_frames_bounds_as_they_were(device, monkeypatch):

@@ -175,12 +175,19 @@ class _Domain:
         snapped = centre.astype(np.float32).astype(np.float64)
         shift = float(np.max(np.abs(snapped - centre)))
         float32_centre = shift <= CENTRE_SNAP * side
+        unrounded = side
         if float32_centre:
             centre = snapped
             side += 2.0 * shift  # the centre's float32 rounding must not push the mesh out of the cube
-        if previous is not None and side <= (1.0 + REDOMAIN_SIDE_SLACK) * previous.side <= (
-                1.0 + REDOMAIN_SIDE_SLACK) * REDOMAIN_KEEP_SIDE * side:  # a move that keeps the side, and lattice
+        if previous is not None and side <= previous.side <= REDOMAIN_KEEP_SIDE * side:
+            # a move that keeps the side, and lattice: the cube is never smaller than a fresh fit's, so it holds
+            # every later frame that a fresh fit would (one a rounding smaller bounced between two centres)
             return _Domain(centre, previous.side, previous.scale, float32_centre)
+        if (previous is not None and float32_centre
+                and previous.side < side <= (1.0 + REDOMAIN_SIDE_SLACK) * previous.side):
+            # the same mesh, whose new centre rounds further than the side allows for: the side any float32
+            # centre's rounding could need, so later moves keep it
+            side = unrounded * (1.0 + 2.0 * CENTRE_SNAP)
         return _Domain(centre, side, math.ldexp(1.0, -round(math.log2(side))), float32_centre)
 
     def holds(self, lo: np.ndarray, hi: np.ndarray) -> bool:

@@ -16,10 +16,13 @@ CENTRE_SNAP = 2.0**-12
 REDOMAIN_MIN_FILL = 0.4
 
 # A frame that moves the domain keeps the cube's side where a fresh fit's side would be at most this much smaller
-# (REDOMAIN_KEEP_SIDE) or larger (REDOMAIN_SIDE_SLACK), so a mesh that moves without changing size keeps its local
-# coordinates, lattice and planned frame (which is then replayed from a CUDA graph). The slack covers the float32
-# rounding of the new centre (about 1e-7 of it), which a fresh fit adds to the side; the margin above still holds
-# the mesh. A kept side costs at most 5% of the finest cell's resolution against a fresh fit.
+# (REDOMAIN_KEEP_SIDE), never larger, so a mesh that moves without changing size keeps its local coordinates,
+# lattice and planned frame (which is then replayed from a CUDA graph), and the kept cube holds whatever a fresh
+# fit's would: a kept side a rounding smaller (the soak's cube, moved back and forth by exactly the margin) moved
+# the domain every few frames. Where a fresh fit is larger by at most REDOMAIN_SIDE_SLACK (the same mesh, whose
+# new centre's float32 rounding, which a fresh fit adds to the side, is larger), the move takes the side that
+# any float32 centre's rounding could need (CENTRE_SNAP on each side), so later moves keep it. A kept side costs
+# at most 5% of the finest cell's resolution against a fresh fit.
 REDOMAIN_KEEP_SIDE = 1.05
 REDOMAIN_SIDE_SLACK = 2.0**-8
 
