@@ -71,7 +71,7 @@ from badf.server.adf._tolerances import (
     QUERY_CHUNK,
     REDOMAIN_KEEP_SIDE,
     REDOMAIN_MIN_FILL,
-    REDOMAIN_SIDE_SLACK,
+    REDOMAIN_REFIT_ROOM,
     SOLID_BESIDE_SAMPLE,
     SOLID_WATCH_SAMPLE,
 )
@@ -175,7 +175,6 @@ class _Domain:
         snapped = centre.astype(np.float32).astype(np.float64)
         shift = float(np.max(np.abs(snapped - centre)))
         float32_centre = shift <= CENTRE_SNAP * side
-        unrounded = side
         if float32_centre:
             centre = snapped
             side += 2.0 * shift  # the centre's float32 rounding must not push the mesh out of the cube
@@ -183,11 +182,8 @@ class _Domain:
             # a move that keeps the side, and lattice: the cube is never smaller than a fresh fit's, so it holds
             # every later frame that a fresh fit would (one a rounding smaller bounced between two centres)
             return _Domain(centre, previous.side, previous.scale, float32_centre)
-        if (previous is not None and float32_centre
-                and previous.side < side <= (1.0 + REDOMAIN_SIDE_SLACK) * previous.side):
-            # the same mesh, whose new centre rounds further than the side allows for: the side any float32
-            # centre's rounding could need, so later moves keep it
-            side = unrounded * (1.0 + 2.0 * CENTRE_SNAP)
+        if previous is not None:
+            side *= REDOMAIN_REFIT_ROOM  # room to grow or shrink on later moves, which then keep the side
         return _Domain(centre, side, math.ldexp(1.0, -round(math.log2(side))), float32_centre)
 
     def holds(self, lo: np.ndarray, hi: np.ndarray) -> bool:

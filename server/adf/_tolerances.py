@@ -19,12 +19,13 @@ REDOMAIN_MIN_FILL = 0.4
 # (REDOMAIN_KEEP_SIDE), never larger, so a mesh that moves without changing size keeps its local coordinates,
 # lattice and planned frame (which is then replayed from a CUDA graph), and the kept cube holds whatever a fresh
 # fit's would: a kept side a rounding smaller (the soak's cube, moved back and forth by exactly the margin) moved
-# the domain every few frames. Where a fresh fit is larger by at most REDOMAIN_SIDE_SLACK (the same mesh, whose
-# new centre's float32 rounding, which a fresh fit adds to the side, is larger), the move takes the side that
-# any float32 centre's rounding could need (CENTRE_SNAP on each side), so later moves keep it. A kept side costs
-# at most 5% of the finest cell's resolution against a fresh fit.
+# the domain every few frames. A move that fits the side afresh takes REDOMAIN_REFIT_ROOM more than a fresh fit,
+# the middle of that window, so a mesh that grows or shrinks a little between moves keeps it for a while (the
+# bench's wobbling armadillo, thrown every frame, grew past a fresh fit's side on each of its last 15 moves, each
+# a new plan run eagerly and captured again), and so does a mesh whose new centre only rounds differently. A kept
+# side costs at most 5% of the finest cell's resolution against a fresh fit.
 REDOMAIN_KEEP_SIDE = 1.05
-REDOMAIN_SIDE_SLACK = 2.0**-8
+REDOMAIN_REFIT_ROOM = 1.025
 
 # Surface cells: a triangle is tested against each finest cell grown by this fraction of the cell size,
 # so rounding never drops a cell the surface touches (a few extra cells are harmless).
