@@ -182,8 +182,8 @@ class _Domain:
             # a move that keeps the side, and lattice: the cube is never smaller than a fresh fit's, so it holds
             # every later frame that a fresh fit would (one a rounding smaller bounced between two centres)
             return _Domain(centre, previous.side, previous.scale, float32_centre)
-        if previous is not None:
-            side *= REDOMAIN_REFIT_ROOM  # room to grow or shrink on later moves, which then keep the side
+        if previous is not None and side > previous.side:
+            side *= REDOMAIN_REFIT_ROOM  # a mesh that grew may grow on: room for later moves, which then keep it
         return _Domain(centre, side, math.ldexp(1.0, -round(math.log2(side))), float32_centre)
 
     def holds(self, lo: np.ndarray, hi: np.ndarray) -> bool:

@@ -19,11 +19,12 @@ REDOMAIN_MIN_FILL = 0.4
 # (REDOMAIN_KEEP_SIDE), never larger, so a mesh that moves without changing size keeps its local coordinates,
 # lattice and planned frame (which is then replayed from a CUDA graph), and the kept cube holds whatever a fresh
 # fit's would: a kept side a rounding smaller (the soak's cube, moved back and forth by exactly the margin) moved
-# the domain every few frames. A move that fits the side afresh takes REDOMAIN_REFIT_ROOM more than a fresh fit,
-# the middle of that window, so a mesh that grows or shrinks a little between moves keeps it for a while (the
-# bench's wobbling armadillo, thrown every frame, grew past a fresh fit's side on each of its last 15 moves, each
-# a new plan run eagerly and captured again), and so does a mesh whose new centre only rounds differently. A kept
-# side costs at most 5% of the finest cell's resolution against a fresh fit.
+# the domain every few frames. A move that grows the side takes REDOMAIN_REFIT_ROOM more than a fresh fit, the
+# middle of that window, so a mesh that goes on growing a little between moves keeps it for a while (the bench's
+# wobbling armadillo, thrown every frame, grew past a fresh fit's side on each of its last 15 moves, each a new plan
+# run eagerly and captured again), and so does a mesh whose new centre only rounds a little further. A mesh that
+# shrank below the window gets a fresh fit's side, as fine as a fresh field's. A kept side costs at most 5% of the
+# finest cell's resolution against a fresh fit.
 REDOMAIN_KEEP_SIDE = 1.05
 REDOMAIN_REFIT_ROOM = 1.025
 
