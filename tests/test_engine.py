@@ -915,19 +915,23 @@ def test_a_planned_frame_allocates_the_octrees_scratch_once(device, monkeypatch,
 
 def test_a_builds_arrays_are_given_back_once_frames_keep_the_domain(device):
     """What only a BVH build uses (the sort, the radix tree's links and the slots' ranges and parents) is freed on
-    the first frame that keeps the domain; an object whose frames keep moving the domain keeps them, allocating
-    nothing per frame; and the field stays exact through both."""
+    the first frame that keeps the domain, and the stats count them apart; an object whose frames keep moving the
+    domain keeps them, allocating nothing per frame; and the field stays exact through both."""
     vertices, faces = meshes.sphere()
     field = DistanceField(vertices, faces, depth=4, device=device)
 
     def build_arrays():
         return {name: arr.ptr for name, arr in field._buffers._arrays.items() if name.startswith("bvh.build.")}
 
+    def rebuild_bytes():
+        return sum(field._buffers._arrays[name].capacity for name in build_arrays())
+
     held = build_arrays()
     # the sort's keys and faces, six of the radix tree's arrays, and the slots' first triangles, counts and parents
     assert len(held) == 11
+    assert field.stats()["memory_bytes"]["rebuild"] == rebuild_bytes() > 0  # counted apart (the soak reads it)
     field.update(vertices * np.float32(1.01))
-    assert build_arrays() == {}
+    assert build_arrays() == {} and field.stats()["memory_bytes"]["rebuild"] == 0
     frames = [vertices + np.float32(40.0 * k) for k in range(1, 4)]  # each moves the domain
     field.update(frames[0])
     moved = build_arrays()
@@ -939,6 +943,13 @@ def test_a_builds_arrays_are_given_back_once_frames_keep_the_domain(device):
     positions, values, _ = field.corner_samples()
     truth = oracle.signed_distance(positions, frames[-1], faces)
     assert np.abs(values - truth).max() <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frames[-1])
+    # a frame that keeps the domain again frees them, and nothing else changes size: the bytes less the
+    # rebuild arrays read the same on either side of it
+    stats = field.stats()
+    assert stats["memory_bytes"]["rebuild"] == rebuild_bytes() > 0
+    field.update(frames[-1] * np.float32(1.0001))
+    assert build_arrays() == {} and field.stats()["memory_bytes"]["rebuild"] == 0
+    assert field.stats()["device_bytes"] == stats["device_bytes"] - stats["memory_bytes"]["rebuild"]
 
 
 def test_planned_frames_equal_measured_frames(device):

@@ -96,8 +96,10 @@ class DeviceBuffers:
 
     def nbytes_by_role(self) -> dict[str, int]:
         """Bytes by what they hold: the field a query reads (octree links, corner table and values), the BVH,
-        the mesh and its sign data, coherence state, query batches, and build scratch (the rest)."""
-        roles = {"field": 0, "bvh": 0, "mesh": 0, "coherence": 0, "queries": 0, "scratch": 0}
+        the mesh and its sign data, coherence state, query batches, what only a BVH build uses ("rebuild": held
+        from a frame that moves the domain to the next one that keeps it, Bvh.give_back_build), and frame
+        scratch (the rest)."""
+        roles = {"field": 0, "bvh": 0, "mesh": 0, "coherence": 0, "queries": 0, "rebuild": 0, "scratch": 0}
         for name, arr in self._arrays.items():
             roles[_role(name)] += arr.capacity
         return roles
@@ -110,7 +112,7 @@ def _role(name: str) -> str:
     if name in _FIELD:
         return "field"
     if name.startswith("bvh.build."):
-        return "scratch"
+        return "rebuild"
     if name.startswith("bvh."):
         return "bvh"
     if name.startswith(("mesh.", "sign.")):
