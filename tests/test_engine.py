@@ -1020,8 +1020,8 @@ def test_a_mesh_thrown_every_frame_keeps_its_side_and_its_field(device, monkeypa
             np.testing.assert_array_equal(got, expected)
     stats = thrown.stats()
     assert stats["domain_moves"] == len(frames) and stats["measured_frames"] == 0
-    # every move keeps the side, but for at most one: the first whose centre's float32 rounding needs more than
-    # the build's side allows for takes the side any rounding could need, which the later moves keep
+    # every move keeps the side, but for at most one: the first whose fresh fit is larger than the build's side
+    # (its centre's float32 rounding needs more) takes 2.5% room, which the later moves keep
     assert sum(a != b for a, b in zip(sides, sides[1:])) <= 1 and sides[-1] == max(sides)
     assert stats["counts"]["coherent_frame"]  # coherence holds across the moves
     if device.startswith("cuda"):  # the first frames after the build settle its plan; then a capture per side
