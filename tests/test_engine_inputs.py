@@ -95,6 +95,45 @@ def test_bad_frames_and_queries_leave_the_field_as_it_was(device):
     np.testing.assert_array_equal(before.normal, after.normal)
 
 
+def test_bad_float32_frames_leave_the_field_as_it_was(device):
+    """A float32 frame is written to the upload's pinned buffer before it is checked (update): a bad one leaves
+    the field as it was, and the next good frame gets the field a float64 copy of it gets."""
+    vertices, faces = meshes.sphere()
+    vertices = vertices.astype(np.float32)
+    field = DistanceField(vertices, faces, depth=4, device=device)
+    twin = DistanceField(vertices, faces, depth=4, device=device)
+    points = np.random.default_rng(1).uniform(-1.5, 1.5, size=(50, 3)).astype(np.float32)
+    before = field.query(points, outputs=("distance", "normal"))
+    row_5 = np.arange(len(vertices))[:, None] == 5
+    for value, message in [(np.nan, "must be finite, got 3 NaN or Inf values in 1 rows"), (-np.inf, "must be finite"),
+                           (1e19, r"must lie within \+-1e\+18")]:
+        with pytest.raises(InvalidInputError, match=message):
+            field.update(np.where(row_5, np.float32(value), vertices))
+    assert field.frame == 0
+    after = field.query(points, outputs=("distance", "normal"))
+    np.testing.assert_array_equal(before.distance, after.distance)
+    np.testing.assert_array_equal(before.normal, after.normal)
+    # the twin takes the frame in float64, which is recentred on the host and never staged before its check
+    grown = (vertices * np.float32(1.01)).astype(np.float32)
+    assert field.update(grown) == twin.update(grown.astype(np.float64)) == 1
+    ours, theirs = field.query(points).distance, twin.query(points).distance
+    np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-5)  # the sphere's radius is 1
+    assert np.abs(ours - before.distance).max() > 5e-3  # the frame that came is the one staged
+
+
+def test_a_non_finite_vertex_that_no_face_uses_is_refused(device):
+    """The bounds that place the domain leave out vertices no face uses, but every vertex is checked."""
+    vertices, faces = meshes.sphere()
+    vertices = np.vstack([vertices, [[5.0, 5.0, 5.0]]]).astype(np.float32)
+    field = DistanceField(vertices, faces, depth=3, device=device)
+    for dtype in (np.float32, np.float64):
+        frame = vertices.astype(dtype)
+        frame[-1] = np.nan
+        with pytest.raises(InvalidInputError, match="must be finite, got 3 NaN or Inf values in 1 rows"):
+            field.update(frame)
+    assert field.frame == 0 and field.update(vertices) == 1
+
+
 def test_empty_query_and_unrequested_outputs(device):
     vertices, faces = meshes.sphere()
     field = DistanceField(vertices, faces, depth=3, device=device)
