@@ -96,8 +96,8 @@ def test_bad_frames_and_queries_leave_the_field_as_it_was(device):
 
 
 def test_bad_float32_frames_leave_the_field_as_it_was(device):
-    """A float32 frame is written to the upload's pinned buffer before it is checked (update): a bad one leaves
-    the field as it was, and the next good frame gets the field a float64 copy of it gets."""
+    """A bad float32 frame (the kind recentred on the device) leaves the field as it was, and the next good one
+    gets the field that a float64 copy of it gets."""
     vertices, faces = meshes.sphere()
     vertices = vertices.astype(np.float32)
     field = DistanceField(vertices, faces, depth=4, device=device)
@@ -113,12 +113,12 @@ def test_bad_float32_frames_leave_the_field_as_it_was(device):
     after = field.query(points, outputs=("distance", "normal"))
     np.testing.assert_array_equal(before.distance, after.distance)
     np.testing.assert_array_equal(before.normal, after.normal)
-    # the twin takes the frame in float64, which is recentred on the host and never staged before its check
+    # the twin takes the frame in float64, which is recentred on the host
     grown = (vertices * np.float32(1.01)).astype(np.float32)
     assert field.update(grown) == twin.update(grown.astype(np.float64)) == 1
     ours, theirs = field.query(points).distance, twin.query(points).distance
     np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-5)  # the sphere's radius is 1
-    assert np.abs(ours - before.distance).max() > 5e-3  # the frame that came is the one staged
+    assert np.abs(ours - before.distance).max() > 5e-3  # the field is the new frame's
 
 
 def test_a_non_finite_vertex_that_no_face_uses_is_refused(device):

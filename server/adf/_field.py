@@ -35,7 +35,6 @@ from badf.server.adf._inputs import (
     as_points,
     as_vertices,
     check_band,
-    check_bounds,
     check_choice,
     check_depth,
     check_flag,
@@ -415,19 +414,8 @@ class DistanceField:
 
         Raises InvalidInputError (and keeps the last good frame) on a wrong shape or non-finite value.
         """
-        v = as_vertices(vertices, expected_count=self._vertex_count, check_finite=False)
-        # A float32 frame whose faces use every vertex is written to the pinned buffer that the upload copies
-        # from first, and checked and bounded from that copy while the cache holds it: one pass over the
-        # caller's array where checking, bounding and staging made three (the H200's host took 0.42 ms for
-        # them against a 2.54 ms update, 2026-11-29). Nothing on the device is touched before the check.
-        staged = v.dtype == np.float32 and self._used is None
-        if staged:
-            host = self._staging.numpy()
-            host[:] = v
-        lo, hi = bounds(host if staged else v)
-        check_bounds(lo, hi, v, "vertices")  # every vertex, also those no face uses
-        if self._used is not None:
-            lo, hi = self._bounds(v)
+        v = as_vertices(vertices, expected_count=self._vertex_count)
+        lo, hi = self._bounds(v)
         moved = self._failed_update is not None or not self._domain.holds(lo, hi)
         if moved:
             self._domain = _Domain.fit(lo, hi, previous=self._domain)
@@ -437,7 +425,7 @@ class DistanceField:
         recentre = v.dtype == np.float32 and self._domain.recentres_float32
         try:
             self._apply(v if recentre else self._domain.to_local(v), float(np.max(hi - lo)) * self._domain.scale,
-                        domain_moved=moved, recentre=recentre, staged=staged and recentre)
+                        domain_moved=moved, recentre=recentre)
         except BaseException as error:
             # Valid input that failed on the way (out of device memory, a device fault): the buffers may hold
             # part of this frame and part of the last, so the object answers nothing until a frame goes
@@ -678,10 +666,9 @@ class DistanceField:
         self._medial_marked = True
 
     # -- the pipeline ---------------------------------------------------------------------------------
-    def _apply(self, local_vertices: np.ndarray, extent: float, *, domain_moved: bool, recentre: bool = False,
-               staged: bool = False) -> None:
+    def _apply(self, local_vertices: np.ndarray, extent: float, *, domain_moved: bool, recentre: bool = False) -> None:
         """Upload a frame and rebuild the field: refit (or rebuild, when the domain moved), sign data,
-        octree, corners, corner distances. `staged`: the pinned upload buffer holds the vertices already.
+        octree, corners, corner distances.
 
         Every frame is planned where it can be, also when the domain moved (the BVH is then rebuilt): its
         buffers keep last frame's sizes with headroom (the first frame's are estimated from the surface's
@@ -705,9 +692,9 @@ class DistanceField:
         with wp.ScopedDevice(self._device), stream, fitting, clock.stage("total"):
             with clock.stage("upload"):
                 # through a pinned buffer, so the copy runs asynchronously (a pageable one waits for it)
-                if not staged:
-                    self._staging.numpy()[:] = local_vertices
-                wp.copy(self._vertices, self._staging)
+                host = self._staging
+                host.numpy()[:] = local_vertices
+                wp.copy(self._vertices, host)
                 if recentre:  # in place: each thread reads and writes its own vertex
                     wp.launch(_recentre, dim=len(local_vertices),
                               inputs=[self._vertices, wp.vec3(*self._domain.centre), self._domain.scale])

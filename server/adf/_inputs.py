@@ -65,19 +65,8 @@ def _check_finite(arr: np.ndarray, name: str) -> None:
     raise InvalidInputError(f"{name} must lie within +-{MAX_COORDINATE:g}, got a coordinate of {told}")
 
 
-def check_bounds(lo: np.ndarray, hi: np.ndarray, arr: np.ndarray, name: str) -> None:
-    """`_check_finite` for a caller that has the array's per-axis bounds already (a NaN fails the comparisons, as
-    numpy's min and max pass it on); the message comes from the array itself."""
-    if np.all(lo >= -MAX_COORDINATE) and np.all(hi <= MAX_COORDINATE):
-        return
-    _check_finite(arr, name)
-    raise InvalidInputError(f"{name} must be finite and within +-{MAX_COORDINATE:g}, got bounds {lo} to {hi}")
-
-
-def as_points(value, name: str = "points", *, expected_count: int | None = None, allow_empty: bool = True,
-              check_finite: bool = True) -> np.ndarray:
-    """A (P, 3) float array of finite coordinates (float64 stays float64 for exact recentring; ints become float64).
-    With `check_finite` False the caller checks the values (`check_bounds`)."""
+def as_points(value, name: str = "points", *, expected_count: int | None = None, allow_empty: bool = True) -> np.ndarray:
+    """A (P, 3) float array of finite coordinates (float64 stays float64 for exact recentring; ints become float64)."""
     arr = _numeric_array(value, name)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise InvalidInputError(f"{name} must have shape (count, 3), got {arr.shape}")
@@ -93,13 +82,12 @@ def as_points(value, name: str = "points", *, expected_count: int | None = None,
         arr = arr.astype(np.float64)
     elif arr.dtype.itemsize < 4:
         arr = arr.astype(np.float32)
-    if check_finite:
-        _check_finite(arr, name)
+    _check_finite(arr, name)
     return np.ascontiguousarray(arr)
 
 
-def as_vertices(value, *, expected_count: int | None = None, check_finite: bool = True) -> np.ndarray:
-    arr = as_points(value, "vertices", expected_count=expected_count, allow_empty=False, check_finite=check_finite)
+def as_vertices(value, *, expected_count: int | None = None) -> np.ndarray:
+    arr = as_points(value, "vertices", expected_count=expected_count, allow_empty=False)
     if arr.shape[0] > MAX_VERTICES:
         raise InvalidInputError(f"vertices: at most {MAX_VERTICES} supported, got {arr.shape[0]}")
     return arr
