@@ -102,3 +102,28 @@ def test_a_signal_ends_a_benchmark_and_the_processes_it_started(tmp_path: Path, 
             os.killpg(process.pid, signal.SIGKILL)  # the group this test started
         if process.poll() is None:
             process.wait()
+
+
+def test_interleave_times_variants_in_turn_and_holds_their_answers_to_the_oracle(tmp_path: Path) -> None:
+    """`python3 -m badf.bench.interleave` with the working tree twice: each variant in its own process imports the
+    folder it was given, runs its rounds, and answers the same points as the other, within the oracle's bounds."""
+    from badf.bench import interleave
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "interleave.json"
+    flags = ["--variant", f"a={root}", "--variant", f"b={root}", "--mesh", str(meshes.data_file("spot")),
+             "--depth", "3", "--device", "cpu", "--rounds", "2", "--frames", "1", "--warm-up", "1", "--points", "50",
+             "--out", str(out)]
+    assert interleave.main(flags) == 0
+    report = json.loads(out.read_text())
+    a, b = report["variants"]["a"], report["variants"]["b"]
+    for variant in (a, b):
+        assert variant["engine"] == str(root / "server" / "adf" / "__init__.py")
+        assert variant["wall_ms"]["frames"] == 2 and variant["wall_ms"]["median"] > 0
+        assert variant["exact_max_error_diag"] <= tol.EXACT_DISTANCE
+        assert 0 < variant["adf_max_error_diag"] < 0.5
+    assert b["adf_max_difference_from_first_diag"] == 0.0  # the same code answers the same, bit for bit
+    with pytest.raises(SystemExit):
+        interleave.main(["--variant", f"a={root}", "--mesh", "spot"])  # one variant compares nothing
+    with pytest.raises(SystemExit, match="has no"):
+        interleave.main(["--variant", f"a={root}", "--variant", f"b={tmp_path}", "--mesh", "spot", "--device", "cpu"])
