@@ -33,7 +33,6 @@ _WORKER = r"""
 import json, os, sys, time
 import numpy as np
 from badf.bench._common import deform, start_warp
-from badf.bench._oracle import nearest
 mesh, depth, device = sys.argv[1], int(sys.argv[2]), sys.argv[3]
 import warp as wp
 device = start_warp(device)
