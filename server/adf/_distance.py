@@ -205,9 +205,7 @@ class CornerField:
         # the BVH cuts the shared-out searches read, made first: a cut not yet made is launched on the current
         # stream, and the far corners' searches run on a side stream that waits only for what was queued before
         # its fork (a cut made after it was read unwritten on an H200, 2026-11-29)
-        far_levels, long_levels = self.cut_levels(split, far_cells)
-        far_cut = None if far_levels is None else cuts(far_levels)
-        long_cut = None if long_levels is None else cuts(long_levels)
+        far_cut, long_cut = self.make_cuts(split, far_cells, cuts)
         choosing = None
         if choose_sign is not None:
             choosing = self._choosing.fork()
@@ -365,10 +363,10 @@ class CornerField:
             return FAR_CELLS
         return 0
 
-    def cut_levels(self, split: SearchSplit, far_cells: int) -> tuple[int | None, int | None]:
-        """Depths of the BVH cuts that `compute` reads with this split and far-corner threshold: the far corners'
-        and the long searches' (None: that cut is not read)."""
-        return (_FAR_SPLIT[0] if far_cells > 0 else None, split.levels if split.budget > 0 else None)
+    def make_cuts(self, split: SearchSplit, far_cells: int, cuts) -> tuple:
+        """The BVH cuts that `compute` reads with this split and far-corner threshold, made now by `cuts(levels)`
+        (Bvh.cut): the far corners' and the long searches' (None: that cut is not read)."""
+        return (cuts(_FAR_SPLIT[0]) if far_cells > 0 else None, cuts(split.levels) if split.budget > 0 else None)
 
     def coherence_key(self) -> tuple:
         """What `compute` takes by value from last frame (for reusing a captured frame): where last frame's

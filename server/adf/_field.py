@@ -770,9 +770,7 @@ class DistanceField:
         key = self._plan_key(split, domain_moved)
         # the cuts a frame's searches read are worked out outside its graph and kept until the next BVH build, so
         # after one (a frame that moved the domain) they are worked out again, for the graph and the capture alike
-        for levels in self._corners.cut_levels(split, self._corners.far_cells_for(self._normals.code)):
-            if levels is not None:
-                self._bvh.cut(levels)
+        self._corners.make_cuts(split, self._corners.far_cells_for(self._normals.code), self._bvh.cut)
         if self._graph is not None and self._graph[0] == key:
             _, graph, stages, self._keep_queued = self._graph
             wp.capture_launch(graph)
