@@ -388,6 +388,11 @@ class DistanceField:
         self._report_on_device = b.array("frame.report", _REPORT_LENGTH, wp.int32)  # gathered there, one copy back
         self._keep_queued = False  # whether the frame queued the keeping of its corners on the device (queue_keep)
         self._staging = wp.empty(vertex_count, dtype=wp.vec3, device="cpu", pinned=self._device.is_cuda)
+        # what takes a staged frame to local coordinates: centre (3) and scale, written on the host beside the
+        # vertices (_stage_frame) and read on the device, so the frame's upload is part of its graph
+        self._to_local = b.array("frame.to_local", 4, wp.float32)
+        self._to_local_host = (wp.zeros(4, dtype=wp.float32, device="cpu", pinned=True) if self._device.is_cuda
+                               else self._to_local)
         self._failed_update: str | None = None  # why the last update failed after its input was checked
         self._planned = False  # whether the next frame may be planned (from an estimate, or a frame's counts)
         self._estimated = False  # whether the next frame's plan is an estimate (the first frame's, from its area)
@@ -690,16 +695,9 @@ class DistanceField:
         fitting = self._buffers.fit() if self._fit_buffers else contextlib.nullcontext()
         self._fit_buffers = False
         with wp.ScopedDevice(self._device), stream, fitting, clock.stage("total"):
-            with clock.stage("upload"):
-                # through a pinned buffer, so the copy runs asynchronously (a pageable one waits for it)
-                host = self._staging
-                host.numpy()[:] = local_vertices
-                wp.copy(self._vertices, host)
-                if recentre:  # in place: each thread reads and writes its own vertex
-                    wp.launch(_recentre, dim=len(local_vertices),
-                              inputs=[self._vertices, wp.vec3(*self._domain.centre), self._domain.scale])
-                self._normals.upload_extent(extent)
-                self._corners.stage_lattice(self._domain, self._depth)
+            self._stage_frame(local_vertices, recentre)
+            self._normals.stage_extent(extent)
+            self._corners.stage_lattice(self._domain, self._depth)
             fits = self._planned and self._planned_frame(domain_moved)
             if not fits:
                 self._graph = None
@@ -709,6 +707,23 @@ class DistanceField:
                 self._planned = True
             self._corners.keep_frame(self._report_on_device, self._fits_at, queued=self._keep_queued)
         self._counters.last_update_wall_ms = (time.perf_counter() - wall) * 1e3
+
+    def _stage_frame(self, vertices: np.ndarray, recentre: bool) -> None:
+        """Write the frame where its upload (_upload_frame) reads it: the vertices into a pinned buffer, so that the
+        copy runs asynchronously (a pageable one waits for it), with the centre and scale that take them to local
+        coordinates (0 and 1 for a frame already local, which leaves it bit for bit as it came)."""
+        self._staging.numpy()[:] = vertices
+        to_local = self._to_local_host.numpy()
+        to_local[:3] = self._domain.centre if recentre else 0.0
+        to_local[3] = self._domain.scale if recentre else 1.0
+
+    def _upload_frame(self) -> None:
+        """Queue the staged frame's copy to the device and its move to local coordinates: within the frame, so a
+        replayed frame is one launch from the host."""
+        wp.copy(self._vertices, self._staging)
+        if self._to_local_host is not self._to_local:
+            wp.copy(self._to_local, self._to_local_host)
+        wp.launch(_move_to_local, dim=self._vertex_count, inputs=[self._vertices, self._to_local])
 
     def _planned_frame(self, domain_moved: bool) -> bool:
         """Run a planned frame; whether it fitted its plan (else it is counted as a replan)."""
@@ -733,6 +748,9 @@ class DistanceField:
         """Queue one frame's kernels (measuring reads sizes back on the way) and its report."""
         clock = self._clock
         origin, side = self._domain.origin, self._domain.local_side
+        with clock.stage("upload"):  # before the fork: the work beside reads the vertices and the extent
+            self._upload_frame()
+            self._normals.upload_extent()
         # the BVH and the sign data need only the vertices, as does the octree: on CUDA they run beside it
         beside = self._beside.fork()
         with wp.ScopedStream(beside, sync_enter=False) if beside is not None else contextlib.nullcontext():
@@ -894,10 +912,11 @@ def _gather_report(a0: wp.array(dtype=wp.int32), i0: int, c0: int, a1: wp.array(
 
 
 @wp.kernel(enable_backward=False)
-def _recentre(vertices: wp.array(dtype=wp.vec3), centre: wp.vec3, scale: float):
-    """World float32 positions to local coordinates, in place."""
+def _move_to_local(vertices: wp.array(dtype=wp.vec3), to_local: wp.array(dtype=wp.float32)):
+    """Positions to local coordinates in place: less the centre, times the scale (to_local, as _stage_frame wrote it).
+    A frame that came local has centre 0 and scale 1, which leave every finite coordinate as it is."""
     i = wp.tid()
-    vertices[i] = (vertices[i] - centre) * scale
+    vertices[i] = (vertices[i] - wp.vec3(to_local[0], to_local[1], to_local[2])) * to_local[3]
 
 
 def _to_world_units(local: np.ndarray, scale: float) -> None:

@@ -396,6 +396,8 @@ class Pseudonormals:
         self.edge_normal = b.array("sign.edge_normal", self.edge_count + 1 if active else 1, wp.vec3)
         self.volume_area = b.array("sign.volume_area", 2, wp.float32)  # this frame's enclosed volume, area
         self.extent = b.array("sign.extent", 1, wp.float32)  # this frame's largest bounding-box side
+        self._extent_host = (wp.zeros(1, dtype=wp.float32, device="cpu", pinned=True) if self.extent.device.is_cuda
+                             else self.extent)  # stage_extent writes it, upload_extent copies it within the frame
         self.winding_frame = b.array("sign.winding_frame", 1, wp.int32)
         # whether this frame's watched faces found parts running into each other (watch_parts)
         self.parts_overlap = b.array("sign.parts_overlap", 1, wp.int32)
@@ -413,10 +415,14 @@ class Pseudonormals:
         self.frame_parts_overlap = False
         self.frame_seams_torn = False
 
-    def upload_extent(self, extent: float) -> None:
-        """The frame's extent, which the enclosed-volume test scales with (sent with the vertices)."""
-        if self.method == "pseudonormal":
-            self.extent.fill_(extent)
+    def stage_extent(self, extent: float) -> None:
+        """Write the frame's extent, which the enclosed-volume test scales with, for upload_extent."""
+        self._extent_host.numpy()[0] = extent
+
+    def upload_extent(self) -> None:
+        """Queue the staged extent's copy to the device (with the vertices, within the frame)."""
+        if self.method == "pseudonormal" and self._extent_host is not self.extent:
+            wp.copy(self.extent, self._extent_host)
 
     def watch_parts(self, order: np.ndarray, per_frame: int) -> None:
         """From the next frame on, look beside `per_frame` points of `order` (frame_watch_order) each frame, a
