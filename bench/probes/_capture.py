@@ -11,7 +11,7 @@ from badf.server.adf import DistanceField
 from badf.server.adf import _distance
 
 # corner_searches' inputs up to its budget; after it come the budget, `seeded` and the seeds
-SEEDING_INPUTS = 16
+SEEDING_INPUTS = [arg.label for arg in _distance.corner_searches.adj.args].index("budget")
 
 
 def captured_search(path: str, device: str):
