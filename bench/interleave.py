@@ -141,10 +141,12 @@ def measure(variants: dict[str, pathlib.Path], mesh: pathlib.Path, *, depth: int
                 running.append(_Variant(name, root, mesh, depth, device))
             for variant in running:
                 variant.ask(f"run {warm_up}")  # to the first replayed frames: captures and first plans
-            per_round = {v.name: [] for v in running}
+            per_round = {v.name: {"wall": [], "after_upload": []} for v in running}
             for r in range(rounds):
                 for variant in running if r % 2 == 0 else running[::-1]:
-                    per_round[variant.name].append(float(np.median(variant.run(frames)["after_upload"])))
+                    times = variant.run(frames)
+                    for measure in ("wall", "after_upload"):
+                        per_round[variant.name][measure].append(float(np.median(times[measure])))
             data = np.load(mesh)
             vertices = data["vertices"]
             lo, hi = vertices.min(axis=0), vertices.max(axis=0)
@@ -172,7 +174,8 @@ def measure(variants: dict[str, pathlib.Path], mesh: pathlib.Path, *, depth: int
             "wall_ms": _summary(variant.wall), "device_total_ms": _summary(variant.total),
             "after_upload_ms": _summary(variant.after_upload),
             # its round medians less the first variant's, round by round: drift cancels within a round
-            "after_upload_vs_first_ms": float(np.median(np.subtract(per_round[variant.name], per_round[first]))),
+            "wall_vs_first_ms": _vs_first(per_round, variant.name, first, "wall"),
+            "after_upload_vs_first_ms": _vs_first(per_round, variant.name, first, "after_upload"),
             "graph_captures": a["captures"], "replans": a["replans"], "memory_bytes": a["memory_bytes"],
             "adf_max_error_diag": float(np.max(np.abs(np.asarray(a["adf"]) - truth)) / diagonal),
             "exact_max_error_diag": float(np.max(np.abs(np.asarray(a["exact"]) - truth)) / diagonal),
@@ -180,6 +183,11 @@ def measure(variants: dict[str, pathlib.Path], mesh: pathlib.Path, *, depth: int
                 np.max(np.abs(np.asarray(a["adf"]) - np.asarray(answers[first]["adf"]))) / diagonal),
         }
     return report
+
+
+def _vs_first(per_round: dict, name: str, first: str, measure: str) -> float:
+    """The median over rounds of `name`'s round median of `measure` less the first variant's in the same round."""
+    return round(float(np.median(np.subtract(per_round[name][measure], per_round[first][measure]))), 4)
 
 
 def _summary(values: list[float]) -> dict:
@@ -190,14 +198,14 @@ def _summary(values: list[float]) -> dict:
 def _print(report: dict) -> None:
     print(f"interleave: {report['mesh']} at depth {report['depth']} on {report['device']}, {report['rounds']} rounds "
           f"of {report['frames_per_round']} frames, {report['date']}")
-    print(f"{'variant':<10} {'wall':>7} {'total':>7} {'after up.':>9} {'vs first':>9} {'adf err':>9} {'exact err':>9} "
-          f"{'adf diff':>9} {'MiB':>7}")
+    print(f"{'variant':<10} {'wall':>7} {'vs first':>9} {'total':>7} {'after up.':>9} {'vs first':>9} {'adf err':>9} "
+          f"{'exact err':>9} {'adf diff':>9} {'MiB':>7}")
     for name, v in report["variants"].items():
-        print(f"{name:<10} {v['wall_ms']['median']:>7.3f} {v['device_total_ms']['median']:>7.3f} "
+        print(f"{name:<10} {v['wall_ms']['median']:>7.3f} {v['wall_vs_first_ms']:>+9.4f} {v['device_total_ms']['median']:>7.3f} "
               f"{v['after_upload_ms']['median']:>9.4f} {v['after_upload_vs_first_ms']:>+9.4f} "
               f"{v['adf_max_error_diag']:>9.2e} {v['exact_max_error_diag']:>9.2e} "
               f"{v['adf_max_difference_from_first_diag']:>9.2e} {v['memory_bytes'] / 2**20:>7.2f}")
-    print("ms, medians over every frame; 'vs first' is the median over rounds of each round's difference; errors "
+    print("ms, medians over every frame; each 'vs first' is the median over rounds of each round's difference; errors "
           "against the float64 oracle, in bounding-box diagonals, at the last frame")
 
 

@@ -123,6 +123,8 @@ def test_interleave_times_variants_in_turn_and_holds_their_answers_to_the_oracle
         assert variant["exact_max_error_diag"] <= tol.EXACT_DISTANCE
         assert 0 < variant["adf_max_error_diag"] < 0.5
     assert b["adf_max_difference_from_first_diag"] == 0.0  # the same code answers the same, bit for bit
+    assert a["wall_vs_first_ms"] == a["after_upload_vs_first_ms"] == 0.0  # the first against itself, round by round
+    assert abs(b["wall_vs_first_ms"]) < max(a["wall_ms"]["p90"], b["wall_ms"]["p90"])
     with pytest.raises(SystemExit):
         interleave.main(["--variant", f"a={root}", "--mesh", "spot"])  # one variant compares nothing
     with pytest.raises(SystemExit, match="has no"):
