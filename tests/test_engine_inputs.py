@@ -121,6 +121,33 @@ def test_bad_float32_frames_leave_the_field_as_it_was(device):
     assert np.abs(ours - before.distance).max() > 5e-3  # the field is the new frame's
 
 
+def test_frames_of_either_dtype_answer_alike_through_one_graph(device):
+    """A float32 frame is moved to local coordinates on the device, as the first work of its frame (inside the
+    graph a planned frame replays on CUDA); a float64 one on the host, which the device then leaves as it is (centre
+    0, scale 1). The same float32 values give the same field bit for bit whichever dtype brought them, also when one
+    graph replays across the switches."""
+    vertices, faces = meshes.load("torus")
+    base = (vertices + [3.3, -1.7, 2.1]).astype(np.float32)  # off the origin, so the move does something
+    mixed = DistanceField(base, faces, depth=5, device=device)
+    double = DistanceField(base.astype(np.float64), faces, depth=5, device=device)
+    assert mixed._domain.recentres_float32  # the device's move, not the host's float64 one, takes float32 frames
+    points = np.random.default_rng(2).uniform(base.min(axis=0) - 0.2, base.max(axis=0) + 0.2, (400, 3))
+    extent = float(np.ptp(base, axis=0).max())
+    for k in range(1, 7):
+        frame = (base + np.float32(0.01 * extent) * np.sin(k + base[:, [1, 2, 0]])).astype(np.float32)
+        mixed.update(frame if k % 2 else frame.astype(np.float64))
+        double.update(frame.astype(np.float64))
+        for mode in ("adf", "exact"):
+            ours = mixed.query(points, mode=mode, outputs=("distance", "face"))
+            theirs = double.query(points, mode=mode, outputs=("distance", "face"))
+            np.testing.assert_array_equal(ours.distance, theirs.distance, err_msg=f"frame {k}, {mode}")
+            np.testing.assert_array_equal(ours.face, theirs.face, err_msg=f"frame {k}, {mode}")
+    stats = mixed.stats()
+    assert stats["domain_moves"] == 0 and stats["replans"] == 0
+    if device.startswith("cuda"):
+        assert stats["graph_captures"] == 1  # one graph, replayed for float32 and float64 frames alike
+
+
 def test_a_non_finite_vertex_that_no_face_uses_is_refused(device):
     """The bounds that place the domain leave out vertices no face uses, but every vertex is checked."""
     vertices, faces = meshes.sphere()
