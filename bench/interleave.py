@@ -145,8 +145,8 @@ def measure(variants: dict[str, pathlib.Path], mesh: pathlib.Path, *, depth: int
             for r in range(rounds):
                 for variant in running if r % 2 == 0 else running[::-1]:
                     times = variant.run(frames)
-                    for measure in ("wall", "after_upload"):
-                        per_round[variant.name][measure].append(float(np.median(times[measure])))
+                    for kind in ("wall", "after_upload"):
+                        per_round[variant.name][kind].append(float(np.median(times[kind])))
             data = np.load(mesh)
             vertices = data["vertices"]
             lo, hi = vertices.min(axis=0), vertices.max(axis=0)

@@ -210,6 +210,26 @@ class SideStream:
             wp.get_stream(self.device).wait_stream(stream, self._joined)
 
 
+class HostStaged:
+    """A small device array the host writes before each frame and the frame copies up: on CUDA through a pinned
+    twin, so the copy is asynchronous and can be part of a captured graph; on the CPU the array itself, which the
+    host writes in place and `upload` leaves alone."""
+
+    def __init__(self, array: wp.array):
+        self.array = array
+        self._host = (wp.zeros(array.shape[0], dtype=array.dtype, device="cpu", pinned=True) if array.device.is_cuda
+                      else array)
+
+    def host(self) -> np.ndarray:
+        """Where the host writes the next frame's values."""
+        return self._host.numpy()
+
+    def upload(self) -> None:
+        """Queue the copy of what the host wrote into the device array (nothing on the CPU)."""
+        if self._host is not self.array:
+            wp.copy(self.array, self._host)
+
+
 class HostReadback:
     """Reads a few integers back from the device through one small pinned buffer (no allocation per frame)."""
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from badf.server.adf._buffers import DeviceBuffers, SharedScratch, SideStream
+from badf.server.adf._buffers import DeviceBuffers, HostStaged, SharedScratch, SideStream
 from badf.server.adf._bvh import (
     UNLIMITED_VISITS,
     BvhView,
@@ -180,9 +180,7 @@ class CornerField:
         # last frame's lattice in this frame's local coordinates (origin, 1 / cell), written on the host before
         # each frame (stage_lattice) and read on the device, so a frame captured as a CUDA graph after the domain
         # moved replays for any later move: on CUDA it travels through a pinned buffer, copied within the frame
-        self._lattice = buffers.ensure("corner.prev_lattice", 1, wp.vec4)
-        self._lattice_host = (wp.zeros(1, dtype=wp.vec4, device="cpu", pinned=True) if self.device.is_cuda
-                              else self._lattice)
+        self._lattice = HostStaged(buffers.ensure("corner.prev_lattice", 1, wp.vec4))
         self.split: SearchSplit | None = None  # None: SearchSplit.automatic for each compute
         self._last_split = _WHOLE
         self._last_far_cells = 0
@@ -216,8 +214,8 @@ class CornerField:
         centre, side, origin = domain.centre, domain.local_side, domain.origin
         band = domain.local_band(band)
         cell = side / float(1 << depth)
-        if use_previous and self._lattice_host is not self._lattice:
-            wp.copy(self._lattice, self._lattice_host)  # as stage_lattice left it before the frame
+        if use_previous:
+            self._lattice.upload()  # as stage_lattice left it before the frame
         by_winding = sign.method == SIGN_WINDING
         long_corner, long_start, long_best, inside, seeds, far_corner, far_start, far_best = self.scratch.take(
             *self.scratch_layout(capacity, expected_count, bvh.internal_count, sign.method))
@@ -226,7 +224,7 @@ class CornerField:
             long_count.zero_()
         seeding = [corner_keys, count, capacity, origin, cell, 1.0 / side, depth, bvh, band or 0.0,
                    1 if use_previous else 0, self._previous_keys, self._previous_face, self._previous_count,
-                   self._previous_capacity, self._lattice]
+                   self._previous_capacity, self._lattice.array]
         if far_cells > 0:
             # corners far from the surface, listed with their seeds' bounds and searched by subtree beside the
             # others, from the start of the stage (their single walks would be the launch's longest)
@@ -381,7 +379,7 @@ class CornerField:
         scale = domain.scale
         origin = (self._previous_centre - domain.centre) * scale - self._previous_side * scale / 2.0
         inv_cell = float(1 << depth) / (self._previous_side * scale)
-        self._lattice_host.numpy()[0] = np.array([*origin, inv_cell], dtype=np.float32)
+        self._lattice.host()[0] = np.array([*origin, inv_cell], dtype=np.float32)
 
     @property
     def search_budget(self) -> int:

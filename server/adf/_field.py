@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 import warp as wp
 
-from badf.server.adf._buffers import DeviceBuffers, SideStream
+from badf.server.adf._buffers import DeviceBuffers, HostStaged, SideStream
 from badf.server.adf._bvh import Bvh
 from badf.server.adf._clock import StageClock
 from badf.server.adf._distance import (
@@ -390,9 +390,7 @@ class DistanceField:
         self._staging = wp.empty(vertex_count, dtype=wp.vec3, device="cpu", pinned=self._device.is_cuda)
         # what takes a staged frame to local coordinates: centre (3) and scale, written on the host beside the
         # vertices (_stage_frame) and read on the device, so the frame's upload is part of its graph
-        self._to_local = b.array("frame.to_local", 4, wp.float32)
-        self._to_local_host = (wp.zeros(4, dtype=wp.float32, device="cpu", pinned=True) if self._device.is_cuda
-                               else self._to_local)
+        self._to_local = HostStaged(b.array("frame.to_local", 4, wp.float32))
         self._failed_update: str | None = None  # why the last update failed after its input was checked
         self._planned = False  # whether the next frame may be planned (from an estimate, or a frame's counts)
         self._estimated = False  # whether the next frame's plan is an estimate (the first frame's, from its area)
@@ -713,7 +711,7 @@ class DistanceField:
         copy runs asynchronously (a pageable one waits for it), with the centre and scale that take them to local
         coordinates (0 and 1 for a frame already local, which leaves it bit for bit as it came)."""
         self._staging.numpy()[:] = vertices
-        to_local = self._to_local_host.numpy()
+        to_local = self._to_local.host()
         to_local[:3] = self._domain.centre if recentre else 0.0
         to_local[3] = self._domain.scale if recentre else 1.0
 
@@ -721,9 +719,8 @@ class DistanceField:
         """Queue the staged frame's copy to the device and its move to local coordinates: within the frame, so a
         replayed frame is one launch from the host."""
         wp.copy(self._vertices, self._staging)
-        if self._to_local_host is not self._to_local:
-            wp.copy(self._to_local, self._to_local_host)
-        wp.launch(_move_to_local, dim=self._vertex_count, inputs=[self._vertices, self._to_local])
+        self._to_local.upload()
+        wp.launch(_move_to_local, dim=self._vertex_count, inputs=[self._vertices, self._to_local.array])
 
     def _planned_frame(self, domain_moved: bool) -> bool:
         """Run a planned frame; whether it fitted its plan (else it is counted as a replan)."""

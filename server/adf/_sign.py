@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 import warp as wp
 
-from badf.server.adf._buffers import DeviceBuffers
+from badf.server.adf._buffers import DeviceBuffers, HostStaged
 from badf.server.adf._bvh import (
     NO_CHILD,
     BvhView,
@@ -396,8 +396,7 @@ class Pseudonormals:
         self.edge_normal = b.array("sign.edge_normal", self.edge_count + 1 if active else 1, wp.vec3)
         self.volume_area = b.array("sign.volume_area", 2, wp.float32)  # this frame's enclosed volume, area
         self.extent = b.array("sign.extent", 1, wp.float32)  # this frame's largest bounding-box side
-        self._extent_host = (wp.zeros(1, dtype=wp.float32, device="cpu", pinned=True) if self.extent.device.is_cuda
-                             else self.extent)  # stage_extent writes it, upload_extent copies it within the frame
+        self._staged_extent = HostStaged(self.extent)  # stage_extent writes it, upload_extent copies it in the frame
         self.winding_frame = b.array("sign.winding_frame", 1, wp.int32)
         # whether this frame's watched faces found parts running into each other (watch_parts)
         self.parts_overlap = b.array("sign.parts_overlap", 1, wp.int32)
@@ -417,12 +416,12 @@ class Pseudonormals:
 
     def stage_extent(self, extent: float) -> None:
         """Write the frame's extent, which the enclosed-volume test scales with, for upload_extent."""
-        self._extent_host.numpy()[0] = extent
+        self._staged_extent.host()[0] = extent
 
     def upload_extent(self) -> None:
         """Queue the staged extent's copy to the device (with the vertices, within the frame)."""
-        if self.method == "pseudonormal" and self._extent_host is not self.extent:
-            wp.copy(self.extent, self._extent_host)
+        if self.method == "pseudonormal":
+            self._staged_extent.upload()
 
     def watch_parts(self, order: np.ndarray, per_frame: int) -> None:
         """From the next frame on, look beside `per_frame` points of `order` (frame_watch_order) each frame, a
