@@ -557,6 +557,23 @@ def test_auto_sign_picks_winding_for_open_meshes_and_it_matches_the_oracle(devic
     assert np.array_equal(result.distance < 0, np.abs(w[confident]) > 0.5)
 
 
+def test_pseudonormals_forced_on_an_open_mesh_are_warned_about(device, caplog):
+    """sign="pseudonormal" on a mesh with holes signs some points beside them wrongly (as documented): the field is
+    built as asked, with a warning that names the open edges and the methods that would sign it right; a closed
+    mesh asked for the same gets none."""
+    vertices, faces = meshes.sphere()
+    open_faces = faces[vertices[faces].mean(axis=1)[:, 2] < 0.5]
+    with caplog.at_level("WARNING", logger="badf.server"):
+        DistanceField(vertices, faces, depth=3, sign="pseudonormal", device=device)
+    assert not [r for r in caplog.records if "pseudonormal" in r.getMessage()]
+    with caplog.at_level("WARNING", logger="badf.server"):
+        field = DistanceField(vertices, open_faces, depth=3, sign="pseudonormal", device=device)
+    warned = [r.getMessage() for r in caplog.records if "pseudonormal" in r.getMessage()]
+    assert field.info()["sign"] == "pseudonormal" and len(warned) == 1
+    boundary = field.info()["topology"]["boundary_edges"]
+    assert boundary > 0 and f"({boundary} open" in warned[0] and "'winding'" in warned[0]
+
+
 @wp.kernel
 def _winding_numbers(bvh: BvhView, points: wp.array(dtype=wp.vec3), w: wp.array(dtype=wp.float32)):
     i = wp.tid()
