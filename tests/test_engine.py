@@ -11,7 +11,7 @@ import meshes
 import oracle
 import tolerances as tol
 from badf.server.adf import DistanceField, InvalidInputError
-from badf.server.adf._distance import EXACT_ROUNDING
+from badf.server.adf._distance import EXACT_ROUNDING, CornerField, _settle_far_list
 from badf.server.adf._tolerances import WINDING_FAR_FIELD
 from badf.server.adf._geometry import quantize
 from badf.server.adf._bvh import (
@@ -1233,6 +1233,45 @@ def test_far_corners_searched_by_subtree_give_the_same_field(device, name, band)
         tie = np.abs(distance_to_own_face(positions[differ], frame, faces, face[differ])
                      - distance_to_own_face(positions[differ], frame, faces, expected_face[differ]))
         assert np.all(tie <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frame))
+
+
+@pytest.mark.parametrize("count,room,listed,dropped", [(1000, 125, 125, False), (1000, 100, 100, False),
+                                                        (1000, 100, 101, True), (1000, 200, 126, True)])
+def test_a_far_list_longer_than_its_room_is_dropped(device, count, room, listed, dropped):
+    """The far list holds 1 / FAR_LIST_FRACTION of the planned corners, and a frame that outgrew its plan (1000
+    corners against room for 100 far ones, say) may list more than that and still fewer than 1 / FAR_LIST_FRACTION
+    of its own corners. Such a list is dropped too, so that corner_searches searches every far corner whole: a far
+    corner past the list kept last frame's nearest leaf, which the sign kernel read a triangle by (an illegal
+    address on an H200, 2026-11-29, found by random options and frames)."""
+    counts = wp.array([count], dtype=wp.int32, device=device)
+    far_count = wp.array([listed], dtype=wp.int32, device=device)
+    wp.launch(_settle_far_list, dim=1, inputs=[counts, room], outputs=[far_count], device=device)
+    assert far_count.numpy()[0] == (-1 if dropped else listed)
+
+
+def test_far_corners_of_a_first_frame_that_outgrows_its_estimate_are_searched(device, monkeypatch):
+    """The case the random check found: a piece of the bunny (faces 16128 to 19000) at depth 5 with halo 2 and a band
+    outgrows the first frame's plan (estimated from its area), and lists 1,588 far corners, more than the far list
+    planned for. Its first frame is run again at its own sizes; both runs, and the frames after, give the distances
+    whole searches give (on CUDA the first run read a stale leaf's triangle: an illegal address)."""
+    vertices, faces = meshes.load("stanford-bunny")
+    piece = faces[16128 : 16128 + 2873]
+    options = dict(depth=5, halo=2, band=0.1218, sign="pseudonormal", device=device)
+    monkeypatch.setattr(CornerField, "far_cells", 0)
+    whole = DistanceField(vertices, piece, **options)
+    monkeypatch.setattr(CornerField, "far_cells", 12)
+    split = DistanceField(vertices, piece, **options)
+    assert split.stats()["replans"] == 1 and split._corners.far_corners() > 0
+    for frame in (None, vertices * np.float32(1.01)):
+        if frame is not None:
+            whole.update(frame)
+            split.update(frame)
+        _, expected, _ = whole.corner_samples()
+        _, got, _ = split.corner_samples()
+        if device == "cpu":
+            np.testing.assert_array_equal(got, expected)
+        else:
+            assert np.all(np.abs(got - expected) <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(vertices))
 
 
 def test_arrays_that_live_within_a_stage_are_laid_over_the_octrees_scratch(device, monkeypatch):

@@ -234,7 +234,7 @@ class CornerField:
             wp.launch(list_far_corners, dim=capacity, inputs=[*seeding, (far_cells * cell) ** 2, far_capacity],
                       outputs=[seeds, self.value, self.leaf, far_count, far_corner, far_start, far_best],
                       device=self.device, block_dim=SEARCH_BLOCK_DIM)
-            wp.launch(_settle_far_list, dim=1, inputs=[count], outputs=[far_count], device=self.device)
+            wp.launch(_settle_far_list, dim=1, inputs=[count, far_capacity], outputs=[far_count], device=self.device)
         beside = self._beside.fork() if by_winding or far_cells > 0 else None
         if far_cells > 0:
             levels, groups = _FAR_SPLIT
@@ -881,11 +881,14 @@ def list_far_corners(
 
 
 @wp.kernel(enable_backward=False)
-def _settle_far_list(count: wp.array(dtype=wp.int32), far_count: wp.array(dtype=wp.int32)):
+def _settle_far_list(count: wp.array(dtype=wp.int32), far_capacity: int, far_count: wp.array(dtype=wp.int32)):
     """More far corners than 1 / FAR_LIST_FRACTION of the corners (after a domain move, most seeds are
-    poor): the list is dropped (count -1) and corner_searches searches them all whole. Which corners take
-    which path then depends on the frame alone, not on the order the listing threads ran in."""
-    if far_count[0] > count[0] // _FAR_LIST_FRACTION:
+    poor), or than the list holds: the list is dropped (count -1) and corner_searches searches them all whole.
+    Which corners take which path then depends on the frame alone, not on the order the listing threads ran
+    in. The list holds 1 / FAR_LIST_FRACTION of the planned corners, fewer than that of a frame that outgrew its
+    plan; a far corner left off it and not searched whole would keep a stale nearest leaf, which the sign kernel
+    reads a triangle by (an illegal address on an H200, 2026-11-29)."""
+    if far_count[0] > wp.min(count[0] // _FAR_LIST_FRACTION, far_capacity):
         far_count[0] = -1
 
 
