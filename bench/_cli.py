@@ -30,6 +30,8 @@ _BENCHMARKS = {
                  "stability table"),
     "soak": ("badf.bench.soak", "clients x objects streaming and querying for a bounded time; answers and memory "
              "checked"),
+    "random-check": ("badf.bench.random_check", "random meshes, options and frames against the float64 oracle, for "
+                     "a bounded time; every problem printed with the seed that reproduces it"),
 }
 
 # What the benchmarks import beyond the client (all of it in badf[bench]), checked before a run starts: it
@@ -90,7 +92,7 @@ def _stop_signals_as_ctrl_c() -> Iterator[None]:
 
 
 # What each flag of the benchmarks may be, by its name (argparse's dest); a flag left at None is not checked.
-_AT_LEAST_ONE = {"repeat", "repeats", "round_trips", "points", "near_points", "query_batch", "large_batch", "workers",
+_AT_LEAST_ONE = {"cases", "repeat", "repeats", "round_trips", "points", "near_points", "query_batch", "large_batch", "workers",
                  "objects", "grid", "max_rounds"}
 _DEPTHS = {"depth", "dense_max_depth", "switch_depth", "far_sweep", "split_sweep"}
 _POSITIVE_SECONDS = {"seconds", "follow_s", "stream_fps", "budget"}
