@@ -92,8 +92,8 @@ def _stop_signals_as_ctrl_c() -> Iterator[None]:
 
 
 # What each flag of the benchmarks may be, by its name (argparse's dest); a flag left at None is not checked.
-_AT_LEAST_ONE = {"cases", "repeat", "repeats", "round_trips", "points", "near_points", "query_batch", "large_batch", "workers",
-                 "objects", "grid", "max_rounds"}
+_AT_LEAST_ONE = {"cases", "repeat", "repeats", "round_trips", "points", "near_points", "query_batch", "large_batch",
+                 "workers", "objects", "grid", "max_rounds"}
 _DEPTHS = {"depth", "dense_max_depth", "switch_depth", "far_sweep", "split_sweep"}
 _POSITIVE_SECONDS = {"seconds", "follow_s", "stream_fps", "budget"}
 _NOT_NEGATIVE = {"warm_up", "warmup"}

@@ -6,8 +6,8 @@ Each case is drawn from its seed alone: a mesh (a piece of a shared mesh, a nois
 repeated corners, a sphere with duplicated and flipped faces, a folded sheet, a sphere scaled and moved far from
 the origin), options (depth 3 to 6, every sign method, refinement, halo, coherence, a band now and then) and up to
 three frames (a wobble, jitter from 1e-6 to 0.1 of the size, a throw of up to 1000 sizes, a collapse onto a plane,
-a scaling, or the same frame again), with float32 or float64 input, and far corners searched by subtree (CornerField.far_cells, which only CUDA
-chooses on its own) or not. A refused mesh or frame (InvalidInputError)
+a scaling, or the same frame again), with float32 or float64 input, and far corners searched by subtree
+(CornerField.far_cells, which only CUDA chooses on its own) or not. A refused mesh or frame (InvalidInputError)
 is an outcome, not a problem. Then 180 points (uniform in the domain, near and on the surface, and 50 diagonals
 away) are answered in both modes and compared with the oracle, within the bounds of the stability table
 (`_cases.compare_with_oracle`); points beyond a band are left out (their answers are clamped by design), and the
@@ -119,7 +119,9 @@ FAR_CELLS = (None, None, 0, 2, 12)
 
 
 def random_options(rng: np.random.Generator, size: float) -> dict:
-    options = dict(depth=int(rng.integers(3, 7)), sign=str(rng.choice(["auto", "auto", "winding", "none", "pseudonormal"])),
+    depth = int(rng.integers(3, 7))
+    sign = str(rng.choice(["auto", "auto", "winding", "none", "pseudonormal"]))
+    options = dict(depth=depth, sign=sign,
                    refine=str(rng.choice(["surface", "centroid"])), halo=int(rng.integers(0, 3)),
                    coherence=bool(rng.random() < 0.8))
     if rng.random() < 0.25:
