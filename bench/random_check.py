@@ -4,7 +4,8 @@
 
 Each case is drawn from its seed alone: a mesh (a piece of a shared mesh, a noisy or holed sphere, a soup with
 repeated corners, a sphere with duplicated and flipped faces, a folded sheet, a sphere scaled and moved far from
-the origin), options (depth 3 to 6, every sign method, refinement, halo, coherence, a band now and then) and up to
+the origin), options (depth 3 to 6, every sign method, refinement, halo, coherence, now and then a band or a
+region) and up to
 three frames (a wobble, jitter from 1e-6 to 0.1 of the size, a throw of up to 1000 sizes, a collapse onto a plane,
 a scaling, or the same frame again), with float32 or float64 input, and far corners searched by subtree
 (CornerField.far_cells, which only CUDA chooses on its own) or not. A refused mesh or frame (InvalidInputError)
@@ -17,7 +18,8 @@ printed with its seed, which reproduces it.
 
 On 2026-11-29 the script this was made from ran 4,834 cases on the CPU back-end (15 minutes) and found nothing; on
 an H200 it found an illegal address (the far corners' list, docs/hardening.md), and after the fix 403 cases (212
-s) found nothing. This module, which also draws the far-corner threshold: 236 cases on the CPU in 45 s, none.
+s) found nothing. This module, which also draws the far-corner threshold and regions: 525 cases on the CPU in 120 s,
+none.
 """
 
 from __future__ import annotations
@@ -118,7 +120,10 @@ def random_motion(vertices: np.ndarray, rng: np.random.Generator) -> tuple[str, 
 FAR_CELLS = (None, None, 0, 2, 12)
 
 
-def random_options(rng: np.random.Generator, size: float) -> dict:
+def random_options(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> dict:
+    """The field's options for a mesh within [lo, hi]: a band in a quarter of cases, a region (a box within or
+    across the mesh's bounds) in a fifth."""
+    size = float(np.linalg.norm(hi - lo))
     depth = int(rng.integers(3, 7))
     sign = str(rng.choice(["auto", "auto", "winding", "none", "pseudonormal"]))
     options = dict(depth=depth, sign=sign,
@@ -126,6 +131,9 @@ def random_options(rng: np.random.Generator, size: float) -> dict:
                    coherence=bool(rng.random() < 0.8))
     if rng.random() < 0.25:
         options["band"] = float(size * rng.uniform(0.01, 0.5))
+    if rng.random() < 0.2:
+        corners = lo + (hi - lo) * rng.uniform(-0.2, 1.2, size=(2, 3))
+        options["region"] = np.sort(corners, axis=0).tolist()
     return options
 
 
@@ -146,7 +154,7 @@ def check_case(seed: int, device: str, shared: dict) -> dict:
     """Draw case `seed`, run it, and compare with the oracle: its record, with "problem" set where it failed."""
     rng = np.random.default_rng(seed)
     kind, vertices, faces = random_mesh(rng, shared)
-    options = random_options(rng, float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0))))
+    options = random_options(rng, vertices.min(axis=0), vertices.max(axis=0))
     frames = [random_motion(vertices, rng) for _ in range(int(rng.integers(0, 4)))]
     given = vertices.astype(rng.choice([np.float32, np.float64]))
     far = FAR_CELLS[int(rng.integers(0, len(FAR_CELLS)))]
