@@ -9,7 +9,8 @@ region) and up to
 three frames (a wobble, jitter from 1e-6 to 0.1 of the size, a throw of up to 1000 sizes, a collapse onto a plane,
 a scaling, or the same frame again), with float32 or float64 input, and far corners searched by subtree
 (CornerField.far_cells, which only CUDA chooses on its own) or not. A refused mesh or frame (InvalidInputError)
-is an outcome, not a problem. Then 180 points (uniform in the domain, near and on the surface, and 50 diagonals
+is an outcome, not a problem. A slice through the mesh (24 x 24) must be finite and list only cells its plane
+crosses. Then 180 points (uniform in the domain, near and on the surface, and 50 diagonals
 away) are answered in both modes and compared with the oracle, within the bounds of the stability table
 (`_cases.compare_with_oracle`); points beyond a band are left out (their answers are clamped by design), and the
 signs of pseudonormals forced on a mesh are not counted (an open or self-intersecting one is documented to
@@ -18,8 +19,8 @@ printed with its seed, which reproduces it.
 
 On 2026-11-29 the script this was made from ran 4,834 cases on the CPU back-end (15 minutes) and found nothing; on
 an H200 it found an illegal address (the far corners' list, docs/hardening.md), and after the fix 403 cases (212
-s) found nothing. This module, which also draws the far-corner threshold and regions: 525 cases on the CPU in 120 s,
-none.
+s) found nothing. This module, which also draws the far-corner threshold and regions and checks a slice: 553 cases
+on the CPU in 120 s, none.
 """
 
 from __future__ import annotations
@@ -150,6 +151,23 @@ def far_cells(value: int | None):
         CornerField.far_cells = before
 
 
+def slice_trouble(field, vertices: np.ndarray, rng: np.random.Generator) -> str | None:
+    """What is wrong with a slice through the mesh's bounds (a 24 x 24 grid on a random axis), if anything: a
+    distance not finite, or a cell listed that the plane does not cross (float32's rounding, in the domain's units,
+    allowed: a mesh collapsed onto a plane at -2.6e-18 lies on cells' faces at 0)."""
+    axis = int(rng.integers(0, 3))
+    lo, hi = vertices[:, axis].min(), vertices[:, axis].max()
+    position = float(lo + (hi - lo) * rng.random())
+    cut = field.slice(axis, position, resolution=24)
+    if not np.all(np.isfinite(cut.distance)):
+        return "a slice's distance is not finite"
+    slack = 1e-6 * max(abs(position), float(field.info()["domain"]["side"]))  # float32 in the domain's units
+    lower, upper = cut.cell_lower[:, axis].astype(np.float64), cut.cell_upper[:, axis].astype(np.float64)
+    if np.any((lower > position + slack) | (upper < position - slack)):
+        return "a slice lists a cell the plane does not cross"
+    return None
+
+
 def check_case(seed: int, device: str, shared: dict) -> dict:
     """Draw case `seed`, run it, and compare with the oracle: its record, with "problem" set where it failed."""
     rng = np.random.default_rng(seed)
@@ -181,6 +199,10 @@ def _run_case(record: dict, given: np.ndarray, faces: np.ndarray, options: dict,
                 last = frame
             except InvalidInputError as refused:
                 record.setdefault("frames_refused", []).append(str(refused)[:200])
+        trouble = slice_trouble(field, last, np.random.default_rng(seed))
+        if trouble:
+            record["problem"] = trouble
+            return record
         points = _cases.probe_points(field, last, faces, POINTS, np.random.default_rng(seed))
         if "band" in options:  # answers beyond the band are clamped by design
             truth = oracle.nearest(points, last, faces).distance
