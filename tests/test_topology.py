@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import meshes
-from badf.server.adf._sign import analyse_topology
+from badf.server.adf._sign import analyse_topology, with_fans
 
 
 def reference_topology(faces: np.ndarray, vertices: np.ndarray) -> dict:
@@ -128,6 +128,21 @@ def test_topology_matches_the_reference(name):
     assert got.keys() == expected.keys()
     for key, value in expected.items():
         np.testing.assert_array_equal(got[key], value, err_msg=key)
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_fans_added_later_are_the_fans_analysed_at_once(name):
+    """A field that pseudonormals will not sign leaves the fans out (half of the analysis); `with_fans` adds them
+    to such a topology, field for field as one analysis with them gives, and the rest is the same either way."""
+    vertices, faces = (np.asarray(a) for a in CASES[name]())
+    whole = dataclasses.asdict(analyse_topology(faces, vertices))
+    edges_only = analyse_topology(faces, vertices, fans=False)
+    assert not edges_only.has_fans and len(faces) > 0
+    later = dataclasses.asdict(with_fans(edges_only, faces))
+    for key, value in whole.items():
+        np.testing.assert_array_equal(later[key], value, err_msg=key)
+    for key in ("welded_faces", "face_edge", "edge_face_start", "edge_face", "boundary_edges", "inconsistent_edges"):
+        np.testing.assert_array_equal(dataclasses.asdict(edges_only)[key], whole[key], err_msg=key)
 
 
 def test_the_awkward_sphere_has_every_defect():

@@ -61,6 +61,7 @@ from badf.server.adf._sign import (
     resolve_sign,
     spread_sample,
     surface_enters_solid,
+    with_fans,
 )
 from badf.server.adf._tolerances import (
     CENTRE_SNAP,
@@ -323,7 +324,8 @@ class DistanceField:
                 f"{self._domain.side:.3g}, about what float32 resolves there), got {self._band!r}")
         local = self._domain.to_local(v)
         extent = float(np.max(hi - lo)) * self._domain.scale  # in local units, as everything on the device
-        self._topology = analyse_topology(f, v)
+        # the fans, half of the analysis, only where pseudonormals may sign (with_fans below)
+        self._topology = analyse_topology(f, v, fans=self._sign_requested == "pseudonormal")
         face_volume, face_area = face_volumes(local, f)
         volume, area = float(face_volume.sum()), float(face_area.sum())
         solid = self._topology.closed and encloses_volume(volume, area, extent)
@@ -335,8 +337,10 @@ class DistanceField:
         if self._flipped:
             f = np.ascontiguousarray(f[:, [0, 2, 1]])
             # the pseudonormals' corner angles and edge slots are indexed by each face's corner order
-            self._topology = analyse_topology(f, v)
+            self._topology = analyse_topology(f, v, fans=self._sign_requested == "pseudonormal")
         self._sign = resolve_sign(self._sign_requested, self._topology, solid)
+        if self._sign == "pseudonormal":
+            self._topology = with_fans(self._topology, f)
         if self._sign == "pseudonormal" and not self._topology.closed:
             t = self._topology
             log.warning("sign='pseudonormal' was asked for a mesh that is not closed (%d open, %d non-manifold and %d "
