@@ -324,8 +324,9 @@ class DistanceField:
                 f"{self._domain.side:.3g}, about what float32 resolves there), got {self._band!r}")
         local = self._domain.to_local(v)
         extent = float(np.max(hi - lo)) * self._domain.scale  # in local units, as everything on the device
-        # the fans, half of the analysis, only where pseudonormals may sign (with_fans below)
-        self._topology = analyse_topology(f, v, fans=self._sign_requested == "pseudonormal")
+        # the fans, half of the analysis, at once where pseudonormals were asked for, else once auto resolves to them
+        fans = self._sign_requested == "pseudonormal"
+        self._topology = analyse_topology(f, v, fans=fans)
         face_volume, face_area = face_volumes(local, f)
         volume, area = float(face_volume.sum()), float(face_area.sum())
         solid = self._topology.closed and encloses_volume(volume, area, extent)
@@ -337,7 +338,7 @@ class DistanceField:
         if self._flipped:
             f = np.ascontiguousarray(f[:, [0, 2, 1]])
             # the pseudonormals' corner angles and edge slots are indexed by each face's corner order
-            self._topology = analyse_topology(f, v, fans=self._sign_requested == "pseudonormal")
+            self._topology = analyse_topology(f, v, fans=fans)
         self._sign = resolve_sign(self._sign_requested, self._topology, solid)
         if self._sign == "pseudonormal":
             self._topology = with_fans(self._topology, f)
