@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import meshes
-from badf.server.adf._sign import analyse_topology, with_fans
+from badf.server.adf._sign import _stable_order, analyse_topology, face_components, face_volumes, with_fans
 
 
 def reference_topology(faces: np.ndarray, vertices: np.ndarray) -> dict:
@@ -117,7 +117,20 @@ CASES = {
     "single triangle": meshes.single_triangle,
     "awkward sphere": _awkward,
     "parts touching at a point": meshes.cone_on_cube,
+    "parts apart": lambda: _apart(),
 }
+
+
+def _apart() -> tuple[np.ndarray, np.ndarray]:
+    """A torus, a box beside it and a cone on a cube lifted off it: four parts, the faces of each interleaved."""
+    parts = [meshes.torus(), meshes.box(), meshes.cone_on_cube(lift=0.5)]
+    vertices, faces, offset = [], [], 0
+    for k, (v, f) in enumerate(parts):
+        vertices.append(np.asarray(v, np.float64) + [3.0 * k, 0.0, 0.0])
+        faces.append(np.asarray(f, np.int64) + offset)
+        offset += len(v)
+    faces = np.concatenate(faces)
+    return np.concatenate(vertices), faces[np.random.default_rng(0).permutation(len(faces))]
 
 
 @pytest.mark.parametrize("name", list(CASES))
@@ -162,3 +175,52 @@ def test_parts_touching_at_a_point_get_a_fan_each():
     assert topology.closed
     assert topology.fan_count == topology.welded_count + 1
     assert len(topology.seam_pairs) == 0  # the parts may move apart
+
+
+@pytest.mark.parametrize("top", [0, 1, 2**16 - 1, 2**16, 2**31 - 1, 2**40, 2**62])
+def test_the_radix_order_is_numpys_stable_sort(top):
+    """The analysis sorts its keys by 16-bit digits (`_stable_order`): the order numpy's stable sort gives, ties kept
+    in index order, for keys of one to four digits; shuffled, nearly sorted and with many repeats."""
+    rng = np.random.default_rng(top % 1000)
+    shuffled = rng.integers(0, top + 1, 5000, dtype=np.int64)
+    repeats = rng.choice(shuffled[:7], 5000)
+    nearly = np.sort(shuffled) + rng.integers(0, 2, 5000) * (top > 0)
+    for keys in (shuffled, repeats, np.minimum(nearly, top), shuffled.astype(np.int32) if top < 2**31 else shuffled):
+        np.testing.assert_array_equal(_stable_order(keys), np.argsort(keys, kind="stable"))
+    assert len(_stable_order(np.zeros(0, np.int64))) == 0
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_face_volumes_and_parts_match_the_reference(name):
+    """Each face's volume with the origin and area (float64, within rounding of np.cross), and the parts that
+    shared positions connect (a plain flood fill over the welded faces)."""
+    vertices, faces = (np.asarray(a) for a in CASES[name]())
+    volume, area = face_volumes(vertices, faces)
+    v = vertices.astype(np.float64)
+    a, b, c = v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]]
+    scale = np.max(np.abs(v)) ** 3
+    np.testing.assert_allclose(volume, np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0, rtol=0, atol=1e-14 * scale)
+    np.testing.assert_allclose(area, np.linalg.norm(np.cross(b - a, c - a), axis=1) / 2.0, rtol=1e-14)
+    topology = analyse_topology(faces, vertices)
+    parent = list(range(topology.welded_count))  # a plain union-find over the welded vertices
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for a, b, c in topology.welded_faces.tolist():
+        for i, j in ((a, b), (b, c)):
+            parent[max(root(i), root(j))] = min(root(i), root(j))
+    expected = np.array([root(a) for a in topology.welded_faces[:, 0].tolist()])
+    labels = face_components(topology)
+    assert labels.min() == 0 and labels.max() == len(np.unique(expected)) - 1  # numbered 0..parts-1
+
+    def by_first_face(x):  # labels renumbered in the order their first face comes, to compare partitions
+        _, first, inverse = np.unique(x, return_index=True, return_inverse=True)
+        rank = np.empty(len(first), dtype=np.int64)
+        rank[np.argsort(first)] = np.arange(len(first))
+        return rank[inverse.reshape(-1)]
+
+    np.testing.assert_array_equal(by_first_face(labels), by_first_face(expected))
