@@ -50,6 +50,7 @@ from badf.server.adf._sign import (
     lends_no_normal,
     wound_side,
 )
+from badf.server.adf._threads import COUNTS_ROOM, launch_per_item
 from badf.server.adf._tolerances import SURFACE_SNAP
 
 # No fused multiply-adds in this module's kernels (nor in the point queries'): with them, the compiler may
@@ -220,6 +221,8 @@ class CornerField:
         long_corner, long_start, long_best, inside, seeds, far_corner, far_start, far_best = self.scratch.take(
             *self.scratch_layout(capacity, expected_count, bvh.internal_count, sign.method))
         long_count = b.ensure("corner.long_count", 1, wp.int32)
+        # the CPU's chunks' counts (launch_per_item); CUDA launches whole
+        chunk_counts = b.ensure("corner.chunk_counts", COUNTS_ROOM, wp.int32) if self.device.is_cpu else None
         if splitting:
             long_count.zero_()
         seeding = [corner_keys, count, capacity, origin, cell, 1.0 / side, depth, bvh, band or 0.0,
@@ -244,12 +247,16 @@ class CornerField:
                       outputs=[far_best], device=self.device, stream=beside)
             wp.launch(_gather_split, dim=groups, inputs=[groups, far_count, far_capacity, far_corner, far_best],
                       outputs=[self.value, self.leaf], device=self.device, stream=beside)
-        wp.launch(
+        # shared out over the CPU's cores where each search writes only its own corner's slots (no long list); the
+        # per-corner arrays: the keys, the seeds where far corners are listed, the distances and leaves
+        launch_per_item(
             corner_searches,
-            dim=capacity,
+            capacity,
             inputs=[*seeding, split.budget if splitting else UNLIMITED_VISITS, 1 if far_cells > 0 else 0, seeds,
                     far_count if far_cells > 0 else long_count],
             outputs=[self.value, self.leaf, long_count, long_corner, long_start, long_best],
+            sliced=None if splitting else (0, *((17,) if far_cells > 0 else ()), 19, 20),
+            counts=chunk_counts,
             device=self.device,
             block_dim=SEARCH_BLOCK_DIM,
         )
@@ -264,13 +271,15 @@ class CornerField:
                       outputs=[self.value, self.leaf], device=self.device)
         if by_winding:
             # launched after the searches, so that eagerly (not from a graph) the searches' blocks start first
-            wp.launch(winding_kernel(), dim=capacity, inputs=[corner_keys, count, capacity, origin, cell, bvh],
-                      outputs=[inside], device=self.device, block_dim=SIGN_BLOCK_DIM, stream=beside)
+            launch_per_item(winding_kernel(), capacity, inputs=[corner_keys, count, capacity, origin, cell, bvh],
+                            outputs=[inside], sliced=(0, 6), counts=chunk_counts, device=self.device,
+                            block_dim=SIGN_BLOCK_DIM, stream=beside)
         self._beside.join(beside)
         self._choosing.join(choosing)
-        wp.launch(sign_kernel(sign.method), dim=capacity,
-                  inputs=[corner_keys, count, capacity, origin, cell, bvh, sign, inside],
-                  outputs=[self.value, self.leaf], device=self.device, block_dim=SIGN_BLOCK_DIM)
+        launch_per_item(sign_kernel(sign.method), capacity,
+                        inputs=[corner_keys, count, capacity, origin, cell, bvh, sign, inside],
+                        outputs=[self.value, self.leaf], sliced=(0, *((7,) if by_winding else ()), 8, 9),
+                        counts=chunk_counts, device=self.device, block_dim=SIGN_BLOCK_DIM)
         self.coherent = use_previous
         if not coherent:
             self._next = None  # nothing is carried to the next frame
@@ -420,12 +429,15 @@ class PointQuery:
         face = b.ensure("query.face", n if outputs & OUT_FACE else 1, wp.int32, headroom=True)
         device_points = b.ensure("query.points", n, wp.vec3, headroom=True)
         wp.copy(device_points, wp.array(points, dtype=wp.vec3, device="cpu", copy=False), count=n)
-        wp.launch(
+        # shared out over the CPU's cores by points: the points and the outputs asked for (the others hold one slot)
+        asked = tuple(12 + k for k, bit in enumerate((OUT_DISTANCE, OUT_CLOSEST, OUT_NORMAL, OUT_FACE)) if outputs & bit)
+        launch_per_item(
             query_kernel(sign.method),
-            dim=n,
+            n,
             inputs=[device_points, wp.vec3(*offset), scale, 1 if exact else 0, outputs, octree, corner_value, corner_leaf,
                     bvh, sign, 1.0 / side, band or 0.0],
             outputs=[distance, closest, normal, face],
+            sliced=(0, *asked),
             device=self.device,
         )
         for name, bit, arr, dtype in (

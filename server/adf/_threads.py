@@ -1,0 +1,121 @@
+"""The CPU back-end's per-corner launches shared out over the machine's cores.
+
+Warp runs a CPU launch's threads one after another on the calling thread, and lets go of the GIL while it does,
+so launches over disjoint ranges of corners run side by side from a pool of threads. Only kernels whose every
+write is to their own item's slots are shared out (the corner searches without a split, the winding numbers, the
+signs); each chunk sees the same kernel over a slice of the per-item arrays, with its own count, so each item's
+answer is computed exactly as in one launch. CUDA launches go through unchanged.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import os
+import threading
+
+import warp as wp
+
+# Items per chunk below which a launch is not shared out (a launch costs tens of microseconds), and chunks per
+# thread, so that chunks of long walks (corners far from the surface) do not leave the other threads idle.
+MIN_CHUNK = 2048
+CHUNKS_PER_THREAD = 4
+MAX_CHUNKS = 256
+COUNTS_ROOM = MAX_CHUNKS + 1  # a count per chunk, and a zero
+
+
+def cpu_threads() -> int:
+    """Threads the CPU back-end's launches are shared out over: $BADF_CPU_THREADS if set (1 turns it off), else
+    the cores this process may run on."""
+    value = os.environ.get("BADF_CPU_THREADS", "").strip()
+    if value:
+        try:
+            threads = int(value)
+        except ValueError:
+            raise ValueError(f"BADF_CPU_THREADS must be a whole number of threads, got {value!r}") from None
+        if threads < 1:
+            raise ValueError(f"BADF_CPU_THREADS must be at least 1, got {threads}")
+        return threads
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+_pool: concurrent.futures.ThreadPoolExecutor | None = None
+_pool_threads = 0
+_pool_lock = threading.Lock()
+
+
+def _forget_pool() -> None:
+    """In a forked child the pool's threads are not there: it makes its own when it first needs one."""
+    global _pool, _pool_threads, _pool_lock
+    _pool, _pool_threads, _pool_lock = None, 0, threading.Lock()
+
+
+os.register_at_fork(after_in_child=_forget_pool)
+
+
+def _executor(threads: int) -> concurrent.futures.ThreadPoolExecutor:
+    global _pool, _pool_threads
+    with _pool_lock:
+        if _pool is None or _pool_threads != threads:
+            if _pool is not None:
+                _pool.shutdown(wait=False)
+            _pool = concurrent.futures.ThreadPoolExecutor(max_workers=threads, thread_name_prefix="badf-cpu")
+            _pool_threads = threads
+        return _pool
+
+
+def chunks_for(capacity: int, threads: int | None = None) -> int:
+    """How many chunks a launch over `capacity` items is cut into on the CPU back-end (1: one launch)."""
+    threads = cpu_threads() if threads is None else threads
+    if threads <= 1:
+        return 1
+    return max(1, min(CHUNKS_PER_THREAD * threads, MAX_CHUNKS, capacity // MIN_CHUNK))
+
+
+def launch_per_item(kernel, dim: int, inputs: list, outputs: list, *, sliced: tuple[int, ...] | None,
+                    counts: wp.array | None = None, device, **launch_options) -> None:
+    """`wp.launch(kernel, dim=dim, inputs, outputs, device, **launch_options)` for a kernel whose thread i handles
+    item i and writes only item i's slots. On the CPU back-end the items are cut into chunks launched from a pool of
+    threads, each with the arguments at `sliced` (positions in inputs + outputs: arrays with a slot per item; None:
+    not to be shared out, as the kernel writes elsewhere too) sliced to the chunk. With `counts` (a CPU int32 array
+    of COUNTS_ROOM), the kernel's first three arguments are (items, count, capacity = dim), it handles the items
+    below min(count[0], capacity), and each chunk gets its own count (written into `counts`) and capacity. Returns
+    once every chunk has run; a chunk's error is raised here."""
+    device = wp.get_device(device)
+    chunks = chunks_for(dim) if device.is_cpu and sliced is not None else 1
+    if chunks <= 1:
+        wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, **launch_options)
+        return
+    arguments = [*inputs, *outputs]
+    listed = dim if counts is None else min(int(arguments[1].numpy()[0]), dim)
+    bounds = [dim * j // chunks for j in range(chunks + 1)]
+    chunk_counts = None if counts is None else counts.numpy()
+    launches = []
+    for j in range(chunks):
+        start, end = bounds[j], bounds[j + 1]
+        if start >= listed:
+            break
+        chunk = list(arguments)
+        if counts is not None:
+            chunk_counts[j] = min(listed, end) - start
+            chunk[1], chunk[2] = counts[j : j + 1], end - start
+        for at in sliced:
+            chunk[at] = arguments[at][start:end]
+        launches.append((end - start, chunk))
+    if not launches:
+        return
+    split = len(inputs)
+    # one item first, here, loads the kernel's module (if it is not yet), which the threads then find loaded: with
+    # a count of zero it does nothing else; without a count it answers the first item, as its chunk will again
+    idle_dim, idle = 1, list(launches[0][1])
+    if counts is not None:
+        chunk_counts[MAX_CHUNKS] = 0
+        idle[1] = counts[MAX_CHUNKS : MAX_CHUNKS + 1]
+    wp.launch(kernel, dim=idle_dim, inputs=idle[:split], outputs=idle[split:], device=device, **launch_options)
+    pool = _executor(cpu_threads())
+    futures = [pool.submit(wp.launch, kernel, dim=chunk_dim, inputs=chunk[:split], outputs=chunk[split:],
+                           device=device, **launch_options) for chunk_dim, chunk in launches]
+    for future in futures:
+        future.result()

@@ -1,0 +1,90 @@
+"""The CPU back-end's launches shared out over threads (server/adf/_threads.py): the corner searches, winding
+numbers, signs and point queries cut into chunks give, bit for bit, what one launch gives, and the exact answers
+hold against the float64 oracle. CPU only: CUDA launches are never cut."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import meshes
+import oracle
+import tolerances as tol
+from badf.server.adf import DistanceField
+from badf.server.adf import _threads
+from badf.server.adf._distance import CornerField
+
+
+def _wobble(vertices: np.ndarray, t: float) -> np.ndarray:
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    phase = 2.0 * np.pi * ((vertices - lo) / (hi - lo) + t)
+    return (vertices + 0.01 * float(np.linalg.norm(hi - lo)) * np.sin(phase[:, [1, 2, 0]])).astype(np.float32)
+
+
+def _answers(vertices, faces, points, options) -> list[np.ndarray]:
+    """Corners and queries of a field over two frames: everything the shared-out kernels write."""
+    field = DistanceField(vertices, faces, device="cpu", **options)
+    answers = []
+    for t in (0.0, 0.05):
+        field.update(_wobble(vertices, t))
+        answers += list(field.corner_samples())
+        adf = field.query(points, outputs=("distance", "closest_point", "normal", "face"))
+        exact = field.query(points, mode="exact", outputs=("distance", "face"))
+        answers += [adf.distance, adf.closest_point, adf.normal, adf.face, exact.distance, exact.face,
+                    field.query(points, outputs=("normal",)).normal]
+    return answers
+
+
+@pytest.mark.parametrize(("name", "options", "far_cells"), [
+    ("spot", {"depth": 5}, None),  # closed: pseudonormals
+    ("sheet", {"depth": 5}, None),  # open: winding numbers beside the searches
+    ("fandisk", {"depth": 5, "coherence": False, "halo": 0}, 2),  # far corners listed and searched by subtree
+    ("torus", {"depth": 5, "band": 0.05, "sign": "none"}, None),  # a band, unsigned
+])
+def test_chunks_on_threads_answer_as_one_launch(monkeypatch, name, options, far_cells):
+    monkeypatch.setattr(_threads, "MIN_CHUNK", 64)  # many chunks even for small fields
+    monkeypatch.setattr(CornerField, "far_cells", far_cells)
+    pools = []
+    executor = _threads._executor
+    monkeypatch.setattr(_threads, "_executor", lambda threads: pools.append(threads) or executor(threads))
+    vertices, faces = meshes.load(name)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    points = np.random.default_rng(3).uniform(lo - 0.2 * (hi - lo), hi + 0.2 * (hi - lo), (3000, 3)).astype(np.float32)
+
+    monkeypatch.setenv("BADF_CPU_THREADS", "1")
+    one = _answers(vertices, faces, points, options)
+    assert not pools  # one thread: every launch whole
+    monkeypatch.setenv("BADF_CPU_THREADS", "3")
+    shared = _answers(vertices, faces, points, options)
+    assert pools and set(pools) == {3}
+    for whole, chunked in zip(one, shared, strict=True):
+        np.testing.assert_array_equal(chunked, whole)
+
+    # and the chunked answers are the exact ones: stored corners and exact queries against the float64 oracle
+    frame = _wobble(vertices, 0.05)
+    diag = oracle.bbox_diagonal(frame)
+    positions, values = shared[10], shared[11]  # the second frame's corners
+    at_corners = oracle.nearest(positions, frame, faces).distance
+    if "band" in options:  # corners beyond the band hold +-band
+        within = np.abs(values) < options["band"]
+        assert np.all(at_corners[~within] >= options["band"] - tol.EXACT_DISTANCE * diag)
+        values, at_corners = values[within], at_corners[within]
+    assert np.all(np.abs(np.abs(values) - at_corners) <= tol.EXACT_DISTANCE * diag)
+    truth = oracle.nearest(points, frame, faces).distance
+    exact = shared[17]
+    if "band" in options:
+        near = truth < 0.9 * options["band"]
+        assert np.all(np.abs(np.abs(exact[near]) - truth[near]) <= tol.EXACT_DISTANCE * diag)
+    else:
+        assert np.all(np.abs(np.abs(exact) - truth) <= tol.EXACT_DISTANCE * diag)
+
+
+def test_a_thread_count_that_is_not_one_is_refused(monkeypatch):
+    for bad in ("0", "-2", "many"):
+        monkeypatch.setenv("BADF_CPU_THREADS", bad)
+        with pytest.raises(ValueError, match="BADF_CPU_THREADS"):
+            _threads.cpu_threads()
+    monkeypatch.setenv("BADF_CPU_THREADS", "5")
+    assert _threads.cpu_threads() == 5
+    assert _threads.chunks_for(100_000, 5) == 5 * _threads.CHUNKS_PER_THREAD
+    assert _threads.chunks_for(100, 5) == 1 and _threads.chunks_for(100_000, 1) == 1
