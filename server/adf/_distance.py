@@ -255,7 +255,7 @@ class CornerField:
             inputs=[*seeding, split.budget if splitting else UNLIMITED_VISITS, 1 if far_cells > 0 else 0, seeds,
                     far_count if far_cells > 0 else long_count],
             outputs=[self.value, self.leaf, long_count, long_corner, long_start, long_best],
-            sliced=None if splitting else (0, *((17,) if far_cells > 0 else ()), 19, 20),
+            sliced=None if splitting else (corner_keys, self.value, self.leaf, *((seeds,) if far_cells > 0 else ())),
             counts=chunk_counts,
             device=self.device,
             block_dim=SEARCH_BLOCK_DIM,
@@ -272,13 +272,14 @@ class CornerField:
         if by_winding:
             # launched after the searches, so that eagerly (not from a graph) the searches' blocks start first
             launch_per_item(winding_kernel(), capacity, inputs=[corner_keys, count, capacity, origin, cell, bvh],
-                            outputs=[inside], sliced=(0, 6), counts=chunk_counts, device=self.device,
+                            outputs=[inside], sliced=(corner_keys, inside), counts=chunk_counts, device=self.device,
                             block_dim=SIGN_BLOCK_DIM, stream=beside)
         self._beside.join(beside)
         self._choosing.join(choosing)
         launch_per_item(sign_kernel(sign.method), capacity,
                         inputs=[corner_keys, count, capacity, origin, cell, bvh, sign, inside],
-                        outputs=[self.value, self.leaf], sliced=(0, *((7,) if by_winding else ()), 8, 9),
+                        outputs=[self.value, self.leaf],
+                        sliced=(corner_keys, self.value, self.leaf, *((inside,) if by_winding else ())),
                         counts=chunk_counts, device=self.device, block_dim=SIGN_BLOCK_DIM)
         self.coherent = use_previous
         if not coherent:
@@ -430,14 +431,15 @@ class PointQuery:
         device_points = b.ensure("query.points", n, wp.vec3, headroom=True)
         wp.copy(device_points, wp.array(points, dtype=wp.vec3, device="cpu", copy=False), count=n)
         # shared out over the CPU's cores by points: the points and the outputs asked for (the others hold one slot)
-        asked = tuple(12 + k for k, bit in enumerate((OUT_DISTANCE, OUT_CLOSEST, OUT_NORMAL, OUT_FACE)) if outputs & bit)
+        asked = [arr for arr, bit in ((distance, OUT_DISTANCE), (closest, OUT_CLOSEST), (normal, OUT_NORMAL),
+                                      (face, OUT_FACE)) if outputs & bit]
         launch_per_item(
             query_kernel(sign.method),
             n,
             inputs=[device_points, wp.vec3(*offset), scale, 1 if exact else 0, outputs, octree, corner_value, corner_leaf,
                     bvh, sign, 1.0 / side, band or 0.0],
             outputs=[distance, closest, normal, face],
-            sliced=(0, *asked),
+            sliced=(device_points, *asked),
             device=self.device,
         )
         for name, bit, arr, dtype in (

@@ -1,10 +1,10 @@
-"""The CPU back-end's per-corner launches shared out over the machine's cores.
+"""The CPU back-end's launches over corners and query points shared out over the machine's cores.
 
 Warp runs a CPU launch's threads one after another on the calling thread, and lets go of the GIL while it does,
-so launches over disjoint ranges of corners run side by side from a pool of threads. Only kernels whose every
+so launches over disjoint ranges of items run side by side from a pool of threads. Only kernels whose every
 write is to their own item's slots are shared out (the corner searches without a split, the winding numbers, the
-signs); each chunk sees the same kernel over a slice of the per-item arrays, with its own count, so each item's
-answer is computed exactly as in one launch. CUDA launches go through unchanged.
+signs, the point queries); each chunk sees the same kernel over a slice of the per-item arrays, with its own
+count, so each item's answer is computed exactly as in one launch. CUDA launches go through unchanged.
 """
 
 from __future__ import annotations
@@ -74,15 +74,15 @@ def chunks_for(capacity: int, threads: int | None = None) -> int:
     return max(1, min(CHUNKS_PER_THREAD * threads, MAX_CHUNKS, capacity // MIN_CHUNK))
 
 
-def launch_per_item(kernel, dim: int, inputs: list, outputs: list, *, sliced: tuple[int, ...] | None,
+def launch_per_item(kernel, dim: int, inputs: list, outputs: list, *, sliced: tuple[wp.array, ...] | None,
                     counts: wp.array | None = None, device, **launch_options) -> None:
     """`wp.launch(kernel, dim=dim, inputs, outputs, device, **launch_options)` for a kernel whose thread i handles
     item i and writes only item i's slots. On the CPU back-end the items are cut into chunks launched from a pool of
-    threads, each with the arguments at `sliced` (positions in inputs + outputs: arrays with a slot per item; None:
-    not to be shared out, as the kernel writes elsewhere too) sliced to the chunk. With `counts` (a CPU int32 array
-    of COUNTS_ROOM), the kernel's first three arguments are (items, count, capacity = dim), it handles the items
-    below min(count[0], capacity), and each chunk gets its own count (written into `counts`) and capacity. Returns
-    once every chunk has run; a chunk's error is raised here."""
+    threads, with the arrays in `sliced` (those with a slot per item, wherever they are passed; None: not to be
+    shared out, as the kernel writes elsewhere too) sliced to the chunk. With `counts` (a CPU int32 array of
+    COUNTS_ROOM), the kernel's first three arguments are (items, count, capacity = dim), it handles the items below
+    min(count[0], capacity), and each chunk gets its own count (written into `counts`) and capacity. Returns once
+    every chunk has run; a chunk's error is raised here."""
     device = wp.get_device(device)
     chunks = chunks_for(dim) if device.is_cpu and sliced is not None else 1
     if chunks <= 1:
@@ -101,8 +101,9 @@ def launch_per_item(kernel, dim: int, inputs: list, outputs: list, *, sliced: tu
         if counts is not None:
             chunk_counts[j] = min(listed, end) - start
             chunk[1], chunk[2] = counts[j : j + 1], end - start
-        for at in sliced:
-            chunk[at] = arguments[at][start:end]
+        for at, argument in enumerate(arguments):
+            if any(argument is array for array in sliced):
+                chunk[at] = argument[start:end]
         launches.append((end - start, chunk))
     if not launches:
         return
