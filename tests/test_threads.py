@@ -79,6 +79,22 @@ def test_chunks_on_threads_answer_as_one_launch(monkeypatch, name, options, far_
         assert np.all(np.abs(np.abs(exact) - truth) <= tol.EXACT_DISTANCE * diag)
 
 
+def test_a_bad_thread_count_is_refused_before_a_frame_starts(monkeypatch):
+    """Refused when the field is built, updated or queried, and the field keeps answering its last frame."""
+    vertices, faces = meshes.load("spot")
+    field = DistanceField(vertices, faces, depth=5, device="cpu")
+    points = np.random.default_rng(4).uniform(vertices.min(axis=0), vertices.max(axis=0), (4000, 3)).astype(np.float32)
+    before = field.query(points).distance
+    monkeypatch.setenv("BADF_CPU_THREADS", "zero")
+    for call in (lambda: field.update(_wobble(vertices, 0.1)), lambda: field.query(points),
+                 lambda: DistanceField(vertices, faces, depth=5, device="cpu")):
+        with pytest.raises(ValueError, match="BADF_CPU_THREADS"):
+            call()
+    monkeypatch.delenv("BADF_CPU_THREADS")
+    assert field.stats()["frame"] == 0 and not field.info()["failed_update"]
+    np.testing.assert_array_equal(field.query(points).distance, before)
+
+
 def test_a_thread_count_that_is_not_one_is_refused(monkeypatch):
     for bad in ("0", "-2", "many"):
         monkeypatch.setenv("BADF_CPU_THREADS", bad)

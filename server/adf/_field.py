@@ -63,6 +63,7 @@ from badf.server.adf._sign import (
     surface_enters_solid,
     with_fans,
 )
+from badf.server.adf._threads import cpu_threads
 from badf.server.adf._tolerances import (
     CENTRE_SNAP,
     DOMAIN_MARGIN,
@@ -97,10 +98,13 @@ def _device_lock(device: wp.Device) -> threading.RLock:
 
 
 def _on_device(method):
-    """Run a DistanceField method holding its device's lock."""
+    """Run a DistanceField method holding its device's lock; on the CPU back-end a bad BADF_CPU_THREADS is refused
+    first, before the method touches anything (it would fail mid-frame, at the first launch shared out)."""
 
     @functools.wraps(method)
     def locked(self, *args, **kwargs):
+        if self._device.is_cpu:
+            cpu_threads()
         with _device_lock(self._device):
             return method(self, *args, **kwargs)
 
@@ -311,6 +315,8 @@ class DistanceField:
         self._halo = check_halo(halo)
         self._region = check_region(region)
         self._device = _resolve_device(device)
+        if self._device.is_cpu:
+            cpu_threads()  # a bad BADF_CPU_THREADS, refused before anything is built
 
         # vertices no face uses (left over from editing, or parked far away) have no say in the domain
         used = np.zeros(len(v), dtype=bool)

@@ -84,7 +84,8 @@ def launch_per_item(kernel, dim: int, inputs: list, outputs: list, *, sliced: tu
     min(count[0], capacity), and each chunk gets its own count (written into `counts`) and capacity. Returns once
     every chunk has run; a chunk's error is raised here."""
     device = wp.get_device(device)
-    chunks = chunks_for(dim) if device.is_cpu and sliced is not None else 1
+    threads = cpu_threads() if device.is_cpu and sliced is not None else 1
+    chunks = chunks_for(dim, threads)
     if chunks <= 1:
         wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, **launch_options)
         return
@@ -115,7 +116,7 @@ def launch_per_item(kernel, dim: int, inputs: list, outputs: list, *, sliced: tu
         chunk_counts[MAX_CHUNKS] = 0
         idle[1] = counts[MAX_CHUNKS : MAX_CHUNKS + 1]
     wp.launch(kernel, dim=idle_dim, inputs=idle[:split], outputs=idle[split:], device=device, **launch_options)
-    pool = _executor(cpu_threads())
+    pool = _executor(threads)
     futures = [pool.submit(wp.launch, kernel, dim=chunk_dim, inputs=chunk[:split], outputs=chunk[split:],
                            device=device, **launch_options) for chunk_dim, chunk in launches]
     for future in futures:
