@@ -6,10 +6,7 @@ launches. This probe measures it instead, on CUDA:
   the same for an eager update (kernels one by one, no graph) and the summed busy time against each one's span;
 - the build's host work under cProfile: where the constructor's wall time goes, and how many launches it makes.
 Nothing here is asserted: it prints tables and, with --out, writes them as JSON."""
-import cProfile
-import io
 import json
-import pstats
 import sys
 import time
 
@@ -19,6 +16,9 @@ import warp as wp
 wp.config.quiet = True
 from badf.bench._common import deform  # noqa: E402
 from badf.server.adf import DistanceField  # noqa: E402
+
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from _capture import constructor_profile  # noqa: E402
 
 args = [a for a in sys.argv[1:] if not a.startswith("--")]
 out = sys.argv[sys.argv.index("--out") + 1] if "--out" in sys.argv else None
@@ -80,19 +80,11 @@ updates = [timed(lambda k=k: eager.update(deform(vertices, 0.52 + 0.01 * k))) fo
 update = summary(updates)
 show("eager update (kernels one by one)", update, top=12)
 
-profile = cProfile.Profile()
-profile.enable()
-DistanceField(vertices, faces, device=device)
-wp.synchronize_device(device)
-profile.disable()
-text = io.StringIO()
-stats = pstats.Stats(profile, stream=text)
-stats.sort_stats("tottime").print_stats(30)
-stats.sort_stats("cumulative").print_stats(40)
-print(text.getvalue())
+host_profile = constructor_profile(vertices, faces, device, own=30, cumulative=40)
+print(host_profile)
 
 if out:
     with open(out, "w") as f:
         json.dump({"probe": "build", "device": wp.get_device(device).name, "mesh": path,
                    "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-                   "build": build, "eager_update": update, "host_profile": text.getvalue()}, f, indent=1)
+                   "build": build, "eager_update": update, "host_profile": host_profile}, f, indent=1)

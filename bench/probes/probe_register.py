@@ -3,9 +3,6 @@
 that compiles the kernels; with --profile, where one constructor's host time goes (cProfile, by own time).
 Whichever `badf` is on the path is timed, so two revisions alternate by PYTHONPATH (bench/interleave.py's package
 roots)."""
-import cProfile
-import io
-import pstats
 import statistics
 import sys
 import time
@@ -14,6 +11,9 @@ import numpy as np
 import warp as wp
 
 from badf.server.adf import DistanceField
+
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from _capture import constructor_profile  # noqa: E402
 
 args = [a for a in sys.argv[1:] if not a.startswith("--")]
 repeat = int(sys.argv[sys.argv.index("--repeat") + 1]) if "--repeat" in sys.argv else 9
@@ -37,12 +37,5 @@ print(f"badf from {sys.modules['badf.server.adf'].__file__}")
 print(f"{path} on {device}: constructor median {statistics.median(walls):.1f} ms, least {min(walls):.1f} "
       f"({repeat} runs: {', '.join(f'{w:.0f}' for w in walls)})", flush=True)
 if "--profile" in sys.argv:
-    profile = cProfile.Profile()
-    profile.enable()
-    DistanceField(vertices, faces, device=device)
-    wp.synchronize_device(device)
-    profile.disable()
-    text = io.StringIO()
-    pstats.Stats(profile, stream=text).sort_stats("tottime").print_stats(15)
-    pstats.Stats(profile, stream=text).sort_stats("cumulative").print_stats(25)
-    print("\n".join(line for line in text.getvalue().splitlines() if line.strip())[:9000])
+    text = constructor_profile(vertices, faces, device, own=15, cumulative=25)
+    print("\n".join(line for line in text.splitlines() if line.strip())[:9000])
