@@ -347,13 +347,12 @@ class DistanceField:
             self._topology = analyse_topology(f, v, fans=fans)
         self._sign = resolve_sign(self._sign_requested, self._topology, solid)
         if self._sign == "pseudonormal":
-            self._topology = with_fans(self._topology, f)
-        if self._sign == "pseudonormal" and not self._topology.closed:
-            t = self._topology
-            log.warning("sign='pseudonormal' was asked for a mesh that is not closed (%d open, %d non-manifold and %d "
-                        "inconsistently oriented edges): points beside its holes may be signed wrongly; sign='auto' "
-                        "or 'winding' signs it by winding numbers", t.boundary_edges, t.nonmanifold_edges,
-                        t.inconsistent_edges)
+            self._topology = t = with_fans(self._topology, f)
+            if not t.closed:
+                log.warning("sign='pseudonormal' was asked for a mesh that is not closed (%d open, %d non-manifold "
+                            "and %d inconsistently oriented edges): points beside its holes may be signed wrongly; "
+                            "sign='auto' or 'winding' signs it by winding numbers", t.boundary_edges,
+                            t.nonmanifold_edges, t.inconsistent_edges)
         self._vertex_count, self._face_count = len(v), len(f)
         self._frame = 0
         self._counters = _Counters()
