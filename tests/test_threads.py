@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import warp as wp
 
 import meshes
 import oracle
 import tolerances as tol
 from badf.server.adf import DistanceField
-from badf.server.adf import _threads
+from badf.server.adf import _sign, _threads
 from badf.server.adf._distance import CornerField
 
 
@@ -104,3 +105,66 @@ def test_a_thread_count_that_is_not_one_is_refused(monkeypatch):
     assert _threads.cpu_threads() == 5
     assert _threads.chunks_for(100_000, 5) == 5 * _threads.CHUNKS_PER_THREAD
     assert _threads.chunks_for(100, 5) == 1 and _threads.chunks_for(100_000, 1) == 1
+
+
+@wp.kernel(enable_backward=False)
+def _record_items(offset: int, seen: wp.array(dtype=wp.int32), flag: wp.array(dtype=wp.int32)):
+    item = offset + wp.tid()
+    seen[item] = seen[item] + item + 1
+    if item == 4000:
+        flag[0] = 1
+
+
+def test_offset_chunks_cover_every_item_once(monkeypatch):
+    """With `offset_at`, each chunk is told where its items begin: every item is handled once, by its own index."""
+    monkeypatch.setattr(_threads, "MIN_CHUNK", 64)
+    monkeypatch.setenv("BADF_CPU_THREADS", "3")
+    seen = wp.zeros(5000, dtype=wp.int32, device="cpu")
+    flag = wp.zeros(1, dtype=wp.int32, device="cpu")
+    _threads.launch_per_item(_record_items, 4500, inputs=[500], outputs=[seen, flag], sliced=(), offset_at=0,
+                             device="cpu")
+    expected = np.zeros(5000, np.int64)
+    expected[500:] = np.arange(501, 5001)
+    counts = seen.numpy()
+    # the chunk that answers item 500 first, alone, to load the module, answers it again: 500 is counted twice
+    expected[500] *= 2
+    np.testing.assert_array_equal(counts, expected)
+    assert flag.numpy()[0] == 1
+
+
+def test_the_look_for_parts_running_into_each_other_decides_as_one_launch(monkeypatch):
+    """`auto`'s look beside a closed mesh's faces, at registration and each frame, cut into chunks on threads:
+    the same decisions as one launch (two spheres apart, running into each other, apart again)."""
+    monkeypatch.setattr(_threads, "MIN_CHUNK", 64)
+    vertices, faces = meshes.load("sphere")
+    width = np.ptp(vertices[:, 0])
+    f = np.concatenate([faces, faces + len(vertices)])
+
+    def placed(gap):
+        return np.concatenate([vertices, vertices + [gap * width, 0.0, 0.0]]).astype(np.float32)
+
+    def decisions():
+        field = DistanceField(placed(0.6), f, depth=4, device="cpu")  # into each other from the start
+        seen = [(field.info()["sign"], field.info()["parts_overlap"])]
+        field = DistanceField(placed(1.5), f, depth=4, device="cpu")
+        seen.append((field.info()["sign"], field.info()["parts_overlap"]))
+        for gap in (0.6, 1.5, 0.7):
+            field.update(placed(gap))
+            seen.append((field.info()["sign_this_frame"], field.info()["parts_overlap"]))
+        return seen
+
+    looks = []  # the looks' sizes in items, at registration and each frame
+    launch = _sign.launch_per_item
+
+    def counted(kernel, dim, *args, **kwargs):
+        if kernel is _sign._solid_beside_face:
+            looks.append(dim)
+        launch(kernel, dim, *args, **kwargs)
+
+    monkeypatch.setattr(_sign, "launch_per_item", counted)
+    monkeypatch.setenv("BADF_CPU_THREADS", "1")
+    one = decisions()
+    monkeypatch.setenv("BADF_CPU_THREADS", "3")
+    assert decisions() == one == [("winding", True), ("pseudonormal", False), ("winding", True),
+                                  ("pseudonormal", False), ("winding", True)]
+    assert len(looks) == 10 and all(_threads.chunks_for(dim, 3) > 1 for dim in looks)  # each cut into chunks

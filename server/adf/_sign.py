@@ -34,6 +34,7 @@ from badf.server.adf._geometry import (
     closest_point_on_triangle,
     triangle_distance_sq,
 )
+from badf.server.adf._threads import launch_per_item
 from badf.server.adf._tolerances import (
     CANCELLED_PSEUDONORMAL,
     DEGENERATE_AREA,
@@ -365,8 +366,8 @@ def surface_enters_solid(bvh: BvhView, sign: SignView, vertices: wp.array, faces
     faces_of = wp.array(sample, dtype=wp.int32, device=device)
     start = wp.zeros(1, dtype=wp.int32, device=device)
     found = wp.zeros(1, dtype=wp.int32, device=device)
-    wp.launch(_solid_beside_face, dim=len(sample), inputs=[bvh, sign, vertices, faces, faces_of, start, extent],
-              outputs=[found], device=device)
+    launch_per_item(_solid_beside_face, len(sample), inputs=[bvh, sign, vertices, faces, faces_of, start, 0, extent],
+                    outputs=[found], sliced=(), offset_at=6, device=device)
     return bool(found.numpy()[0])
 
 
@@ -529,10 +530,10 @@ class Pseudonormals:
         with wp.ScopedStream(stream, sync_enter=False) if stream is not None else contextlib.nullcontext():
             self.parts_overlap.zero_()
             if self._watched is not None:
-                wp.launch(_solid_beside_face, dim=self.watch_per_frame,
-                          inputs=[bvh, self.view(), vertices, self.faces, self._watched, self._window_start,
-                                  self.extent],
-                          outputs=[self.parts_overlap], device=self.device)
+                launch_per_item(_solid_beside_face, self.watch_per_frame,
+                                inputs=[bvh, self.view(), vertices, self.faces, self._watched, self._window_start, 0,
+                                        self.extent],
+                                outputs=[self.parts_overlap], sliced=(), offset_at=6, device=self.device)
                 wp.launch(_advance_window, dim=1, inputs=[self._window_start, self.watch_per_frame, len(self._watched)],
                           device=self.device)
             wp.launch(_choose_frame_method, dim=1,
@@ -653,10 +654,11 @@ def _reads_inside_by_a_face_within(bvh: BvhView, sign: SignView, p: wp.vec3, rea
 
 @wp.kernel(enable_backward=False)
 def _solid_beside_face(bvh: BvhView, sign: SignView, vertices: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.vec3i),
-                       slots: wp.array(dtype=wp.int32), start: wp.array(dtype=wp.int32),
+                       slots: wp.array(dtype=wp.int32), start: wp.array(dtype=wp.int32), offset: int,
                        extent: wp.array(dtype=wp.float32), found: wp.array(dtype=wp.int32)):
-    """The point slots[(start + i) mod len] for this launch's i (see surface_enters_solid, beside_points)."""
-    slot = slots[(start[0] + wp.tid()) % slots.shape[0]]
+    """The point slots[(start + offset + i) mod len] for this launch's i (see surface_enters_solid, beside_points;
+    `offset`: where a CPU chunk's items begin, launch_per_item). Sets `found` to 1, or leaves it."""
+    slot = slots[(start[0] + offset + wp.tid()) % slots.shape[0]]
     tri = faces[slot // _POINTS_PER_FACE]
     a, b, c = vertices[tri[0]], vertices[tri[1]], vertices[tri[2]]
     n = wp.cross(b - a, c - a)

@@ -3,7 +3,8 @@
 Warp runs a CPU launch's threads one after another on the calling thread, and lets go of the GIL while it does,
 so launches over disjoint ranges of items run side by side from a pool of threads. Only kernels whose every
 write is to their own item's slots are shared out (the corner searches without a split, the winding numbers, the
-signs, the point queries); each chunk sees the same kernel over a slice of the per-item arrays, with its own
+signs, the point queries), and the look beside a closed mesh's faces for parts running into each other, which
+only ever sets one flag; each chunk sees the same kernel over a slice of the per-item arrays, with its own
 count, so each item's answer is computed exactly as in one launch. CUDA launches go through unchanged.
 """
 
@@ -75,14 +76,16 @@ def chunks_for(capacity: int, threads: int | None = None) -> int:
 
 
 def launch_per_item(kernel, dim: int, inputs: list, outputs: list, *, sliced: tuple[wp.array, ...] | None,
-                    counts: wp.array | None = None, device, **launch_options) -> None:
+                    counts: wp.array | None = None, offset_at: int | None = None, device, **launch_options) -> None:
     """`wp.launch(kernel, dim=dim, inputs, outputs, device, **launch_options)` for a kernel whose thread i handles
-    item i and writes only item i's slots. On the CPU back-end the items are cut into chunks launched from a pool of
-    threads, with the arrays in `sliced` (those with a slot per item, wherever they are passed; None: not to be
-    shared out, as the kernel writes elsewhere too) sliced to the chunk. With `counts` (a CPU int32 array of
-    COUNTS_ROOM), the kernel's first three arguments are (items, count, capacity = dim), it handles the items below
-    min(count[0], capacity), and each chunk gets its own count (written into `counts`) and capacity. Returns once
-    every chunk has run; a chunk's error is raised here."""
+    item i and writes only item i's slots, or a flag that every thread writing it sets to the same value. On the CPU
+    back-end the items are cut into chunks launched from a pool of threads, with the arrays in `sliced` (those with
+    a slot per item, wherever they are passed; None: not to be shared out, as the kernel writes elsewhere too)
+    sliced to the chunk. With `counts` (a CPU int32 array of COUNTS_ROOM), the kernel's first three arguments are
+    (items, count, capacity = dim), it handles the items below min(count[0], capacity), and each chunk gets its own
+    count (written into `counts`) and capacity. With `offset_at`, the argument there (of inputs, then outputs) is
+    an int that the kernel adds to its thread index to find its item, and each chunk gets it plus its first item.
+    Returns once every chunk has run; a chunk's error is raised here."""
     device = wp.get_device(device)
     threads = cpu_threads() if device.is_cpu and sliced is not None else 1
     chunks = chunks_for(dim, threads)
@@ -105,6 +108,8 @@ def launch_per_item(kernel, dim: int, inputs: list, outputs: list, *, sliced: tu
         for at, argument in enumerate(arguments):
             if any(argument is array for array in sliced):
                 chunk[at] = argument[start:end]
+        if offset_at is not None:
+            chunk[offset_at] = arguments[offset_at] + start
         launches.append((end - start, chunk))
     if not launches:
         return
