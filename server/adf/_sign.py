@@ -367,7 +367,7 @@ def surface_enters_solid(bvh: BvhView, sign: SignView, vertices: wp.array, faces
     start = wp.zeros(1, dtype=wp.int32, device=device)
     found = wp.zeros(1, dtype=wp.int32, device=device)
     launch_per_item(_solid_beside_face, len(sample), inputs=[bvh, sign, vertices, faces, faces_of, start, 0, extent],
-                    outputs=[found], sliced=(), offset_at=6, device=device)
+                    outputs=[found], sliced=(), offset_at=_SOLID_BESIDE_OFFSET, device=device)
     return bool(found.numpy()[0])
 
 
@@ -533,7 +533,8 @@ class Pseudonormals:
                 launch_per_item(_solid_beside_face, self.watch_per_frame,
                                 inputs=[bvh, self.view(), vertices, self.faces, self._watched, self._window_start, 0,
                                         self.extent],
-                                outputs=[self.parts_overlap], sliced=(), offset_at=6, device=self.device)
+                                outputs=[self.parts_overlap], sliced=(), offset_at=_SOLID_BESIDE_OFFSET,
+                                device=self.device)
                 wp.launch(_advance_window, dim=1, inputs=[self._window_start, self.watch_per_frame, len(self._watched)],
                           device=self.device)
             wp.launch(_choose_frame_method, dim=1,
@@ -650,6 +651,9 @@ def _reads_inside_by_a_face_within(bvh: BvhView, sign: SignView, p: wp.vec3, rea
                     nodes[count] = child
                     count += 1
     return False
+
+
+_SOLID_BESIDE_OFFSET = 6  # where _solid_beside_face takes `offset`, among its arguments (launch_per_item's offset_at)
 
 
 @wp.kernel(enable_backward=False)
