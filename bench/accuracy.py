@@ -274,7 +274,7 @@ def measure_dense(mesh: Mesh, sets: PointSets, depth: int, domain: tuple[np.ndar
 def measure_switches(mesh: Mesh, sets: PointSets, depth: int, args) -> list[dict]:
     """Each switch that leaves work out, against the default configuration at the same depth."""
     rows = []
-    reference, ref_field, _ = measure_adf(mesh, sets, depth, {}, args)
+    reference, ref_field, ref_answers = measure_adf(mesh, sets, depth, {}, args)
     reference["switch"] = "default: auto sign, no band, coherence on, halo 1, distance only"
     rows.append(reference)
     cell = ref_field.info()["domain"]["finest_cell"]
@@ -285,6 +285,14 @@ def measure_switches(mesh: Mesh, sets: PointSets, depth: int, args) -> list[dict
         name: error_stats(answers[name], sets.of(name, depth), mesh.diag, against=sets.of(name, depth).distance)
         for name in POINT_SETS})
     rows.append(row)
+
+    if reference["sign"] == "pseudonormal":  # auto found the mesh closed, facing out, its parts apart
+        row, _, answers = measure_adf(mesh, sets, depth, {"sign": "pseudonormal"}, args)
+        row["switch"] = ("pseudonormals asked for (no look for parts running into each other, at registration or "
+                         "by frame)")
+        row["difference_to_auto"] = max(float(np.abs(answers[name] - ref_answers[name]).max()) for name in POINT_SETS)
+        row["changes"] = f"max difference to auto's answers: {row['difference_to_auto'] / mesh.diag:.1e} diag"
+        rows.append(row)
 
     band = 4.0 * cell
     row, _, answers = measure_adf(mesh, sets, depth, {"band": band}, args)

@@ -34,7 +34,11 @@ def test_small_accuracy_run_writes_consistent_results(tmp_path):
         assert rows["exact", 4]["errors"][point_set]["max"] <= tol.EXACT_DISTANCE
     # a finer lattice halves the dense grid's error near the surface (fixed seeds: the same points every run)
     assert rows["dense", 4]["errors"]["near"]["max"] < rows["dense", 3]["errors"]["near"]["max"]
-    assert len(report["switches"]) == 7
+    # spot is closed: auto signs it by pseudonormals, so asking for them (which skips the look for parts running
+    # into each other) is a switch too, with the same answers
+    assert len(report["switches"]) == 8
+    asked = [r for r in report["switches"] if r["options"] == {"sign": "pseudonormal"}]
+    assert len(asked) == 1 and asked[0]["difference_to_auto"] == 0.0
 
 
 def test_subdivided_bunnies_are_not_there_without_the_bunny(tmp_path, monkeypatch, capsys):
