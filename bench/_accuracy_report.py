@@ -69,7 +69,7 @@ def render_markdown(report: dict, plot_names: list[str], json_name) -> str:
         "",
         f"**Times**: median wall ms of up to {s['repeat']} runs after a warm-up, host transfers included. build: a "
         "new object from vertices; update: one coherent frame of a smoothly deforming mesh"
-        + (f", after the object's first {s['update_warm_up']} (which settle its sizes and capture its CUDA graph)"
+        + (f", after the object's first {s['update_warm_up']} (which settle its sizes and, on CUDA, capture its graph)"
            if s.get("update_warm_up") else " (from the object's second frame, its first ones still settling)")
         + "; query: per million "
         f"points, timed on batches of {s['query_batch']:,}. **MiB**: the object's device buffers (dense grid: "
