@@ -112,3 +112,18 @@ def constructor_profile(vertices, faces, device: str, *, own: int, cumulative: i
     stats.sort_stats("tottime").print_stats(own)
     stats.sort_stats("cumulative").print_stats(cumulative)
     return text.getvalue()
+
+
+def timed_constructions(vertices, faces, device: str, count: int) -> tuple[list[float], list[dict]]:
+    """`count` new DistanceFields, each timed by the wall clock with the device synchronised before and after:
+    (wall ms, each one's per-stage times)."""
+    walls, stages = [], []
+    for _ in range(count):
+        wp.synchronize_device(device)
+        start = time.perf_counter()
+        field = DistanceField(vertices, faces, device=device)
+        wp.synchronize_device(device)
+        walls.append((time.perf_counter() - start) * 1e3)
+        stages.append(field.stats()["times_ms"])
+        del field
+    return walls, stages

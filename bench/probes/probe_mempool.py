@@ -14,6 +14,9 @@ import warp as wp
 
 from badf.server.adf import DistanceField
 
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from _capture import timed_constructions  # noqa: E402
+
 args = [a for a in sys.argv[1:] if not a.startswith("--")]
 out = sys.argv[sys.argv.index("--out") + 1] if "--out" in sys.argv else None
 if out in args:
@@ -26,27 +29,12 @@ DistanceField(vertices, faces, device=device).update(vertices * 1.01)  # compile
 wp.synchronize_device(device)
 print("release threshold as found:", wp.get_mempool_release_threshold(device), flush=True)
 
-
-def builds(count):
-    walls, spans, stages = [], [], []
-    for _ in range(count):
-        wp.synchronize_device(device)
-        start = time.perf_counter()
-        field = DistanceField(vertices, faces, device=device)
-        wp.synchronize_device(device)
-        walls.append((time.perf_counter() - start) * 1e3)
-        times = field.stats()["times_ms"]
-        spans.append(times["total"])
-        stages.append(times)
-        del field
-    return walls, spans, stages
-
-
 rows = []
 for round_ in range(6):
     threshold = 0 if round_ % 2 == 0 else 2**30
     wp.set_mempool_release_threshold(device, threshold)
-    walls, spans, stages = builds(8)
+    walls, stages = timed_constructions(vertices, faces, device, 8)
+    spans = [times["total"] for times in stages]
     middle = {name: round(statistics.median(s[name] for s in stages), 3) for name in stages[0]}
     rows.append(dict(round=round_, threshold=threshold, wall_ms=round(statistics.median(walls), 3),
                      span_ms=round(statistics.median(spans), 3), spans=[round(s, 3) for s in spans], stages=middle))

@@ -5,7 +5,6 @@ Whichever `badf` is on the path is timed, so two revisions alternate by PYTHONPA
 roots)."""
 import statistics
 import sys
-import time
 
 import numpy as np
 import warp as wp
@@ -13,7 +12,7 @@ import warp as wp
 from badf.server.adf import DistanceField
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _capture import constructor_profile  # noqa: E402
+from _capture import constructor_profile, timed_constructions  # noqa: E402
 
 args = [a for a in sys.argv[1:] if not a.startswith("--")]
 repeat = int(sys.argv[sys.argv.index("--repeat") + 1]) if "--repeat" in sys.argv else 9
@@ -25,14 +24,7 @@ vertices = mesh["vertices"][0] if mesh["vertices"].ndim == 3 else mesh["vertices
 vertices, faces = vertices.astype(np.float32), mesh["faces"].astype(np.int32)
 wp.init()
 DistanceField(vertices, faces, device=device)
-walls = []
-for _ in range(repeat):
-    wp.synchronize_device(device)
-    start = time.perf_counter()
-    field = DistanceField(vertices, faces, device=device)
-    wp.synchronize_device(device)
-    walls.append((time.perf_counter() - start) * 1e3)
-    del field
+walls, _ = timed_constructions(vertices, faces, device, repeat)
 print(f"badf from {sys.modules['badf.server.adf'].__file__}")
 print(f"{path} on {device}: constructor median {statistics.median(walls):.1f} ms, least {min(walls):.1f} "
       f"({repeat} runs: {', '.join(f'{w:.0f}' for w in walls)})", flush=True)
