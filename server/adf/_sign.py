@@ -366,9 +366,16 @@ def surface_enters_solid(bvh: BvhView, sign: SignView, vertices: wp.array, faces
     faces_of = wp.array(sample, dtype=wp.int32, device=device)
     start = wp.zeros(1, dtype=wp.int32, device=device)
     found = wp.zeros(1, dtype=wp.int32, device=device)
-    launch_per_item(_solid_beside_face, len(sample), inputs=[bvh, sign, vertices, faces, faces_of, start, 0, extent],
-                    outputs=[found], sliced=(), offset_at=_SOLID_BESIDE_OFFSET, device=device)
+    _look_beside(len(sample), bvh, sign, vertices, faces, faces_of, start, extent, found, device)
     return bool(found.numpy()[0])
+
+
+def _look_beside(count: int, bvh: BvhView, sign: SignView, vertices: wp.array, faces: wp.array, slots: wp.array,
+                 start: wp.array, extent: wp.array, found: wp.array, device) -> None:
+    """Queue `_solid_beside_face` over `count` points of `slots` from start[0] on; on the CPU shared out over its
+    threads, each chunk told where its points begin."""
+    launch_per_item(_solid_beside_face, count, inputs=[bvh, sign, vertices, faces, slots, start, 0, extent],
+                    outputs=[found], sliced=(), offset_at=_SOLID_BESIDE_OFFSET, device=device)
 
 
 def frame_watch_order(face_count: int) -> np.ndarray:
@@ -530,11 +537,8 @@ class Pseudonormals:
         with wp.ScopedStream(stream, sync_enter=False) if stream is not None else contextlib.nullcontext():
             self.parts_overlap.zero_()
             if self._watched is not None:
-                launch_per_item(_solid_beside_face, self.watch_per_frame,
-                                inputs=[bvh, self.view(), vertices, self.faces, self._watched, self._window_start, 0,
-                                        self.extent],
-                                outputs=[self.parts_overlap], sliced=(), offset_at=_SOLID_BESIDE_OFFSET,
-                                device=self.device)
+                _look_beside(self.watch_per_frame, bvh, self.view(), vertices, self.faces, self._watched,
+                             self._window_start, self.extent, self.parts_overlap, self.device)
                 wp.launch(_advance_window, dim=1, inputs=[self._window_start, self.watch_per_frame, len(self._watched)],
                           device=self.device)
             wp.launch(_choose_frame_method, dim=1,
@@ -653,9 +657,6 @@ def _reads_inside_by_a_face_within(bvh: BvhView, sign: SignView, p: wp.vec3, rea
     return False
 
 
-_SOLID_BESIDE_OFFSET = 6  # where _solid_beside_face takes `offset`, among its arguments (launch_per_item's offset_at)
-
-
 @wp.kernel(enable_backward=False)
 def _solid_beside_face(bvh: BvhView, sign: SignView, vertices: wp.array(dtype=wp.vec3), faces: wp.array(dtype=wp.vec3i),
                        slots: wp.array(dtype=wp.int32), start: wp.array(dtype=wp.int32), offset: int,
@@ -678,6 +679,10 @@ def _solid_beside_face(bvh: BvhView, sign: SignView, vertices: wp.array(dtype=wp
         # outside, but a face as near as its own (a flap pressed flat: faces coincide, facing both ways)
         # reads it inside: which one a search meets first is chance, so pseudonormals cannot sign this frame
         found[0] = 1
+
+
+# where _solid_beside_face takes `offset` among its arguments (launch_per_item's offset_at)
+_SOLID_BESIDE_OFFSET = [arg.label for arg in _solid_beside_face.adj.args].index("offset")
 
 
 @wp.func
