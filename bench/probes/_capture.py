@@ -5,6 +5,7 @@ import argparse
 import cProfile
 import io
 import pstats
+import sys
 import time
 
 import numpy as np
@@ -127,3 +128,13 @@ def timed_constructions(vertices, faces, device: str, count: int) -> tuple[list[
         stages.append(field.stats()["times_ms"])
         del field
     return walls, stages
+
+
+def mesh_device_out() -> tuple[str, str, str | None]:
+    """A probe's command line, `MESH.npz [device] [--out FILE]`: (mesh path, device, default cuda:0; --out or
+    None)."""
+    args = [a for a in sys.argv[1:] if not a.startswith("--")]
+    out = sys.argv[sys.argv.index("--out") + 1] if "--out" in sys.argv else None
+    if out in args:
+        args.remove(out)
+    return args[0], (args[1] if len(args) > 1 else "cuda:0"), out

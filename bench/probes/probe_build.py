@@ -18,13 +18,9 @@ from badf.bench._common import deform  # noqa: E402
 from badf.server.adf import DistanceField  # noqa: E402
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _capture import constructor_profile  # noqa: E402
+from _capture import constructor_profile, mesh_device_out  # noqa: E402
 
-args = [a for a in sys.argv[1:] if not a.startswith("--")]
-out = sys.argv[sys.argv.index("--out") + 1] if "--out" in sys.argv else None
-if out in args:
-    args.remove(out)
-path, device = args[0], (args[1] if len(args) > 1 else "cuda:0")
+path, device, out = mesh_device_out()
 REPEAT = 6
 mesh = np.load(path)
 vertices, faces = mesh["vertices"].astype(np.float32), mesh["faces"]

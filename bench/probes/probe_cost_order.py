@@ -12,13 +12,9 @@ import numpy as np
 import warp as wp
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _capture import captured_search, device_times, engine_search  # noqa: E402
+from _capture import captured_search, device_times, engine_search, mesh_device_out  # noqa: E402
 
-args = [a for a in sys.argv[1:] if not a.startswith("--")]
-out = sys.argv[sys.argv.index("--out") + 1] if "--out" in sys.argv else None
-if out in args:
-    args.remove(out)
-path, device = args[0], (args[1] if len(args) > 1 else "cuda:0")
+path, device, out = mesh_device_out()
 field, inputs, count, truth = captured_search(path, device)
 capacity, cell = inputs[2], float(inputs[4])
 keys = inputs[0].numpy()[:count]

@@ -15,13 +15,9 @@ import warp as wp
 from badf.server.adf import DistanceField
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _capture import timed_constructions  # noqa: E402
+from _capture import mesh_device_out, timed_constructions  # noqa: E402
 
-args = [a for a in sys.argv[1:] if not a.startswith("--")]
-out = sys.argv[sys.argv.index("--out") + 1] if "--out" in sys.argv else None
-if out in args:
-    args.remove(out)
-path, device = args[0], (args[1] if len(args) > 1 else "cuda:0")
+path, device, out = mesh_device_out()
 mesh = np.load(path)
 vertices, faces = mesh["vertices"].astype(np.float32), mesh["faces"].astype(np.int32)
 wp.init()
