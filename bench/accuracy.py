@@ -272,7 +272,8 @@ def measure_dense(mesh: Mesh, sets: PointSets, depth: int, domain: tuple[np.ndar
 
 
 def measure_switches(mesh: Mesh, sets: PointSets, depth: int, args) -> list[dict]:
-    """Each switch that leaves work out, against the default configuration at the same depth."""
+    """Each switch that leaves work out (or, for the BVH's shape, moves it to registration), against the default
+    configuration at the same depth."""
     rows = []
     reference, ref_field, ref_answers = measure_adf(mesh, sets, depth, {}, args)
     reference["switch"] = "default: auto sign, no band, coherence on, halo 1, distance only"
@@ -317,6 +318,15 @@ def measure_switches(mesh: Mesh, sets: PointSets, depth: int, args) -> list[dict
     row, _, _ = measure_adf(mesh, sets, depth, {"halo": 0}, args)
     row["switch"] = "halo 0 (no ring of finest cells around the surface)"
     rows.append(row)
+
+    for mode in ("adf", "exact"):
+        row, _, answers = measure_adf(mesh, sets, depth, {"bvh": "sah"}, args, mode=mode)
+        row["switch"] = f"BVH shaped by surface area (made on the host at registration, then kept), {mode} query"
+        if mode == "adf":
+            row["difference_to_default"] = max(float(np.abs(answers[name] - ref_answers[name]).max())
+                                               for name in POINT_SETS)
+            row["changes"] = f"max difference to the default's answers: {row['difference_to_default'] / mesh.diag:.1e} diag"
+        rows.append(row)
 
     for mode in ("adf", "exact"):
         row, _, _ = measure_adf(mesh, sets, depth, {}, args, mode=mode, outputs=("distance", "closest_point", "normal",

@@ -110,6 +110,7 @@ def _measure_field(vertices, faces, *, device: str, repeat: int, options: dict, 
         "moving_update_wall_ms": round(_median(moving), 4),
         "moving_update_gpu_ms": round(_median([s["total"] for s in moving_stages]), 4),
         "moving_update_stages_ms": stage_medians(moving_stages),
+        "bvh_shape_ms": field.stats()["bvh_shape_ms"],
         "moving_domain_moves": mover_stats["domain_moves"],
         "moving_measured_frames": mover_stats["measured_frames"],
         "counts": stats["counts"],
@@ -631,9 +632,10 @@ def run(args: argparse.Namespace) -> int:
         "repeat": repeat,
         "configurations": [],
     }
-    configs = [{"depth": args.depth}]
+    configs = [{"depth": args.depth} | ({"bvh": args.bvh} if args.bvh != "morton" else {})]
     if not args.quick:
         configs += [
+            {"depth": args.depth, "bvh": "morton" if args.bvh != "morton" else "sah"},
             {"depth": args.depth, "graphs": False},
             {"depth": args.depth, "one_stream": True},
             {"depth": args.depth, "coherence": False},
@@ -713,6 +715,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--depth", type=int, default=7, help="octree depth of the main configuration")
     parser.add_argument("--repeat", type=int, default=20, help="timed repeats per measurement")
     parser.add_argument("--quick", action="store_true", help="only the main configuration")
+    parser.add_argument("--bvh", choices=("morton", "sah"), default="morton",
+                        help="the BVH's shape in the main configuration (the other one is a row of the full run)")
     parser.add_argument("--far-sweep", type=int, nargs="+", metavar="DEPTH",
                         help="only time updates with far corners searched by subtree beside the others, at these "
                              "depths, against off")

@@ -67,6 +67,16 @@ def test_engine_benchmark_runs(tmp_path: Path) -> None:
     assert report["dense_baseline"]["grid_vs_oracle"]["points"] == 1000
 
 
+def test_engine_benchmark_runs_on_the_sah_tree(tmp_path: Path) -> None:
+    """`badf bench engine --quick --bvh sah`: the main configuration on the SAH-shaped BVH, exact as on the
+    Morton one, the shape's host time reported."""
+    report = _run_engine_bench(tmp_path, "--depth", "4", "--repeat", "2", "--quick", "--bvh", "sah")
+    (first,) = report["configurations"]
+    assert first["options"] == {"depth": 4, "bvh": "sah"} and first["bvh_shape_ms"] > 0
+    assert first["exact_vs_oracle"]["max_error_diag"] <= tol.EXACT_DISTANCE
+    assert first["update_gpu_ms"] > 0 and first["moving_domain_moves"] == 2
+
+
 def test_engine_sign_sweep_runs(tmp_path: Path) -> None:
     """`badf bench engine --sign-sweep`: each sign method resolved as asked (auto: pseudonormals on a closed
     mesh), with its update's stage times."""

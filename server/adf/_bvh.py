@@ -33,6 +33,7 @@ import numpy as np
 import warp as wp
 
 from badf.server.adf._buffers import DeviceBuffers
+from badf.server.adf._bvh_shape import Shape
 from badf.server.adf._geometry import (
     KEY_TOP_BIT,
     box_distance_sq,
@@ -90,7 +91,11 @@ class BvhView:
     triangles: wp.array(dtype=wp.vec4)  # (3n,) corners a, b, c of each leaf (Morton order), xyz
     leaf_face: wp.array(dtype=wp.int32)  # (n,) face index of each leaf
     face_leaf: wp.array(dtype=wp.int32)  # (n,) leaf of each face
-    leaf_key: wp.array(dtype=wp.int64)  # (n,) sorted keys, for spatial seeds
+    leaf_key: wp.array(dtype=wp.int64)  # (n,) the triangles' keys, sorted, for spatial seeds
+    # the leaf of each sorted key: (n,) for a tree whose leaves are not in key order (the SAH's shape), else (1,)
+    # and unread, leaf k holding key k
+    key_leaf: wp.array(dtype=wp.int32)
+    keys_in_leaf_order: int
     # Fast-winding-number moments of each internal node i, four vec4 (a one-element array when the sign
     # does not need them). A single triangle's are worked out from it where needed (`leaf_moments`): its
     # first moment about its centroid is zero, so storing them would only repeat the triangle.
@@ -108,10 +113,16 @@ class BvhView:
 
 
 class Bvh:
-    """Owns the BVH's device buffers for one mesh; `build` sorts and links, `refit` updates the boxes."""
+    """Owns the BVH's device buffers for one mesh; `build` sorts and links, `refit` updates the boxes.
 
-    def __init__(self, face_count: int, *, with_moments: bool, buffers: DeviceBuffers):
+    Its shape is Karras's radix tree over the triangles' Morton codes, linked at each build, unless a `shape` is
+    given (`_bvh_shape.sah_shape`): that tree is linked at the first build and kept, and later builds (a frame that
+    moves the domain) only sort the keys that seed searches without a last frame's faces."""
+
+    def __init__(self, face_count: int, *, with_moments: bool, buffers: DeviceBuffers, shape: Shape | None = None):
         self.face_count = face_count
+        self.shape = shape if face_count > 1 else None
+        self._shape_linked = False
         self.internal_count = face_count - 1
         self.code_levels, self.index_bits = code_layout(face_count)
         self.with_moments = with_moments
@@ -122,6 +133,7 @@ class Bvh:
         self.leaf_key = b.array("bvh.leaf_key", n, wp.int64)
         self.leaf_face = b.array("bvh.leaf_face", n, wp.int32)
         self.face_leaf = b.array("bvh.face_leaf", n, wp.int32)  # inverse of leaf_face
+        self.key_leaf = b.array("bvh.key_leaf", n if self.shape is not None else 1, wp.int32)
         self.leaf_count = b.array("bvh.leaf_count", 1, wp.int32)
         self.leaf_count.fill_(n)
         self.slot_child = b.array("bvh.slot_child", slots, wp.int32)
@@ -132,7 +144,11 @@ class Bvh:
         self._cuts: dict[int, wp.array] = {}
 
     def build(self, vertices: wp.array, faces: wp.array, origin: wp.vec3, side: float) -> None:
-        """Sort the triangles by the Morton code of their centroid in the domain and link the tree."""
+        """Sort the triangles by the Morton code of their centroid in the domain and link the tree (a given shape:
+        link it the first time, and only sort the keys after)."""
+        if self.shape is not None:
+            self._sort_keys_of_shape(vertices, faces, origin, side)
+            return
         n = self.face_count
         resolution = 1 << self.code_levels
         b = self._buffers
@@ -159,22 +175,52 @@ class Bvh:
             prefix = b.ensure("bvh.build.prefix", n - 1, wp.int32)
             parent = b.ensure("bvh.build.parent", 2 * n - 1, wp.int32)
             link_radix_tree(self.leaf_key, self.leaf_count, n, parent, left, right, first, prefix, last)
-            # each slot's first sorted triangle and count, and each node's slot in its parent: the view's link
-            # reads them, and nothing after it
-            slot_first = b.ensure("bvh.build.slot_first", 2 * (n - 1), wp.int32)
-            slot_count = b.ensure("bvh.build.slot_count", 2 * (n - 1), wp.int32)
-            parent_slot = b.ensure("bvh.build.parent_slot", 2 * n - 1, wp.int32)
-            parent_slot.fill_(-1)
-            wp.launch(
-                _link_slots,
-                dim=n - 1,
-                inputs=[left, right, first, last, n - 1],
-                outputs=[self.slot_child, slot_first, slot_count, parent_slot],
-                device=self.device,
-            )
-            # the radix tree's left and right links are spent once the slots hold them: the 4-wide view's link
-            # takes them for its own per-node scratch
-            self.wide.link(self.slot_child, slot_count, slot_first, parent_slot, left, right)
+            self._link(left, right, first, last)
+        self._cuts.clear()
+
+    def _sort_keys_of_shape(self, vertices: wp.array, faces: wp.array, origin: wp.vec3, side: float) -> None:
+        n = self.face_count
+        b = self._buffers
+        if not self._shape_linked:
+            shape = self.shape
+            self.leaf_face.assign(shape.order)
+            wp.launch(_invert_order, dim=n, inputs=[self.leaf_face], outputs=[self.face_leaf], device=self.device)
+            links = {name: b.ensure(f"bvh.build.{name}", n - 1, wp.int32) for name in ("left", "right", "first", "last")}
+            for name, array in links.items():
+                array.assign(getattr(shape, name))
+            self._link(links["left"], links["right"], links["first"], links["last"])
+            self._shape_linked = True
+        keys = b.ensure("bvh.build.keys", 2 * n, wp.int64)
+        order = b.ensure("bvh.build.faces", 2 * n, wp.int32)
+        wp.launch(_triangle_keys, dim=n,
+                  inputs=[vertices, faces, origin, (1 << self.code_levels) / side, 1 << self.code_levels,
+                          self.index_bits],
+                  outputs=[keys, order], device=self.device)
+        wp.utils.radix_sort_pairs(keys, order, n)
+        wp.copy(self.leaf_key, keys, count=n)
+        wp.launch(_leaf_of_key, dim=n, inputs=[order, self.face_leaf], outputs=[self.key_leaf], device=self.device)
+
+    def _link(self, left: wp.array, right: wp.array, first: wp.array, last: wp.array) -> None:
+        """Link the slots and the 4-wide view from a binary tree's children and leaf ranges (left and right are
+        taken as the view's scratch)."""
+        n = self.face_count
+        b = self._buffers
+        # each slot's first sorted triangle and count, and each node's slot in its parent: the view's link reads
+        # them, and nothing after it
+        slot_first = b.ensure("bvh.build.slot_first", 2 * (n - 1), wp.int32)
+        slot_count = b.ensure("bvh.build.slot_count", 2 * (n - 1), wp.int32)
+        parent_slot = b.ensure("bvh.build.parent_slot", 2 * n - 1, wp.int32)
+        parent_slot.fill_(-1)
+        wp.launch(
+            _link_slots,
+            dim=n - 1,
+            inputs=[left, right, first, last, n - 1],
+            outputs=[self.slot_child, slot_first, slot_count, parent_slot],
+            device=self.device,
+        )
+        # the tree's left and right links are spent once the slots hold them: the 4-wide view's link takes them
+        # for its own per-node scratch
+        self.wide.link(self.slot_child, slot_count, slot_first, parent_slot, left, right)
         self._cuts.clear()
 
     def give_back_build(self) -> bool:
@@ -220,6 +266,8 @@ class Bvh:
         v.leaf_face = self.leaf_face
         v.face_leaf = self.face_leaf
         v.leaf_key = self.leaf_key
+        v.key_leaf = self.key_leaf
+        v.keys_in_leaf_order = 1 if self.shape is None else 0
         v.node_moments = self.node_moments
         v.wide_planes, v.wide_child, v.wide_first = self.wide.planes, self.wide.child, self.wide.first
         return v
@@ -387,7 +435,9 @@ def spatial_seed(bvh: BvhView, p: wp.vec3, origin: wp.vec3, inv_side: float) -> 
             lo = mid + 1
         else:
             hi = mid
-    return lo
+    if bvh.keys_in_leaf_order != 0:
+        return lo
+    return bvh.key_leaf[lo]
 
 
 @wp.func
@@ -706,6 +756,13 @@ def _triangle_keys(
     cell = quantize(centroid, origin, inv_cell, resolution)
     keys[f] = (morton3(cell[0], cell[1], cell[2]) << wp.int64(index_bits)) | wp.int64(f)
     face_ids[f] = f
+
+
+@wp.kernel(enable_backward=False)
+def _leaf_of_key(key_face: wp.array(dtype=wp.int32), face_leaf: wp.array(dtype=wp.int32),
+                 key_leaf: wp.array(dtype=wp.int32)):
+    k = wp.tid()
+    key_leaf[k] = face_leaf[key_face[k]]
 
 
 @wp.kernel(enable_backward=False)

@@ -16,6 +16,7 @@ import warp as wp
 
 from badf.server.adf._buffers import DeviceBuffers, HostStaged, SideStream
 from badf.server.adf._bvh import Bvh
+from badf.server.adf._bvh_shape import Shape, sah_shape
 from badf.server.adf._clock import StageClock
 from badf.server.adf._distance import (
     OUT_CLOSEST,
@@ -26,6 +27,7 @@ from badf.server.adf._distance import (
     mark_medial_leaves,
 )
 from badf.server.adf._inputs import (
+    BVH_SHAPES,
     MAX_COORDINATE,
     MIN_EXTENT,
     QUERY_MODES,
@@ -285,6 +287,10 @@ class DistanceField:
             of interest: a robot's workspace, the part of a scene a simulation touches). The octree is refined
             only where the box needs it; ADF queries outside the box are answered exactly, as beyond the
             domain. The domain still fits the mesh, so depth means the same cells.
+        bvh: the shape of the BVH the searches and winding numbers walk: "morton" (Karras's radix tree over the
+            triangles' Morton codes, the paper's, linked on the device) or "sah" (split by the surface area
+            heuristic, made once on the host at registration and kept, its boxes refit every frame): its
+            frames are faster, for a registration that takes longer (docs/engine.md, "The BVH's shape").
         device: "cpu", "cuda", "cuda:N", or None for the first GPU if there is one, else the CPU.
 
     Raises:
@@ -303,6 +309,7 @@ class DistanceField:
         refine: Literal["surface", "centroid"] = "surface",
         halo: int = 1,
         region=None,
+        bvh: Literal["morton", "sah"] = "morton",
         device: str | None = None,
     ):
         v = as_vertices(vertices)
@@ -314,6 +321,7 @@ class DistanceField:
         self._refine = check_choice(refine, "refine", REFINEMENTS)
         self._halo = check_halo(halo)
         self._region = check_region(region)
+        self._bvh_shape = check_choice(bvh, "bvh", BVH_SHAPES)
         self._device = _resolve_device(device)
         if self._device.is_cpu:
             cpu_threads()  # a bad BADF_CPU_THREADS, refused before anything is built
@@ -360,8 +368,11 @@ class DistanceField:
         # the first frame's cell set is sized from the surface area it may refine: a region's share of it (a
         # small box at depth 10 kept 452 MiB of scratch sized for the whole mesh; thirteenth outside check)
         refined_area = area if self._region is None else self._area_near_region(local, f, face_area)
+        started = time.perf_counter()
+        shape = sah_shape(local, f) if self._bvh_shape == "sah" and len(f) > 1 else None
+        self._shape_ms = (time.perf_counter() - started) * 1e3 if shape is not None else None
         with _device_lock(self._device):
-            self._build(local, f, len(v), refined_area, extent)
+            self._build(local, f, len(v), refined_area, extent, shape)
             # parts nested or running into each other are signed by winding numbers (surface_enters_solid):
             # every frame, if they are in the first; else each frame they are found to be, from then on
             self._parts_overlap = False
@@ -390,7 +401,8 @@ class DistanceField:
         """The bounds of the vertices that faces use."""
         return bounds(v if self._used is None else v[self._used])
 
-    def _build(self, local: np.ndarray, f: np.ndarray, vertex_count: int, area: float, extent: float) -> None:
+    def _build(self, local: np.ndarray, f: np.ndarray, vertex_count: int, area: float, extent: float,
+               shape: Shape | None) -> None:
         self._buffers = DeviceBuffers(self._device)
         b = self._buffers
         self._vertices = b.array("mesh.vertices", vertex_count, wp.vec3)
@@ -414,7 +426,7 @@ class DistanceField:
         self._graph = None  # (key, graph, stage names, keep queued) of the captured planned frame
         self._graph_candidate = None  # key of the last planned frame run eagerly
         self.use_graphs = True
-        self._bvh = Bvh(len(f), with_moments=self._sign != "none", buffers=b)
+        self._bvh = Bvh(len(f), with_moments=self._sign != "none", buffers=b, shape=shape)
         self._octree = Octree(self._depth, self._refine, self._halo, b)
         self._octree.surface_area = area
         self._normals = Pseudonormals(self._sign, self._topology, self._faces, b)
@@ -618,6 +630,7 @@ class DistanceField:
             "refine": self._refine,
             "halo": self._halo,
             "region": None if self._region is None else self._region.tolist(),
+            "bvh": self._bvh_shape,
             "failed_update": self._failed_update,
             "orientation_flipped": self._flipped,
             "parts_face_both_ways": self._parts_disagree,
@@ -657,6 +670,8 @@ class DistanceField:
             },
             "times_ms": self._clock.times_ms(),
             "update_wall_ms": round(c.last_update_wall_ms, 4),
+            # the host's time making the BVH's shape at registration (bvh="sah"; None for "morton", linked on the device)
+            "bvh_shape_ms": None if self._shape_ms is None else round(self._shape_ms, 3),
             "last_query_ms": round(c.last_query_ms, 4),
             "updates": c.updates,
             "domain_moves": c.domain_moves,
