@@ -132,11 +132,12 @@ def _build(self, vertices, faces, origin, side):
 _bvh.Bvh.build = _build
 
 
-def make(vertices, faces, device, sah: bool) -> DistanceField:
+def make(vertices, faces, device, name: str) -> DistanceField:
+    """radix: the engine's Morton tree; sah: this probe's SAH tree linked in its place; engine-sah: bvh="sah"."""
     global USE_SAH
-    USE_SAH = sah
+    USE_SAH = name == "sah"
     try:
-        return DistanceField(vertices, faces, depth=7, device=device)
+        return DistanceField(vertices, faces, depth=7, device=device, bvh="sah" if name == "engine-sah" else "morton")
     finally:
         USE_SAH = False
 
@@ -157,13 +158,14 @@ def main() -> None:
         data = np.load(path)
         vertices, faces = np.asarray(data["vertices"], np.float32), np.asarray(data["faces"], np.int32)
         order, *_, depth = sah_tree(vertices, faces)
-        times = {"radix": {}, "sah": {}}
-        walls = {"radix": [], "sah": []}
+        names = ("radix", "sah", "engine-sah")
+        times = {name: {} for name in names}
+        walls = {name: [] for name in names}
         fields = {}
         frame = 0
         for round_ in range(args.rounds):
-            for name in (("radix", "sah") if round_ % 2 == 0 else ("sah", "radix")):
-                field = fields.get(name) or make(vertices, faces, args.device, name == "sah")
+            for name in (names if round_ % 2 == 0 else names[::-1]):
+                field = fields.get(name) or make(vertices, faces, args.device, name)
                 fields[name] = field
                 for k in range(3):
                     field.update(deform(vertices, 0.05 * (frame + k)))
@@ -199,10 +201,10 @@ def main() -> None:
         report["meshes"][path] = row
         print(f"\n{path}: {len(faces)} triangles, SAH tree {depth} levels, its host build {SAH_BUILD_S[-1]:.2f} s")
         stages = list(row["median_ms"]["radix"])
-        print(f"{'stage':>14} {'radix':>9} {'sah':>9}")
+        print(f"{'stage':>14}" + "".join(f" {name:>10}" for name in names))
         for stage in stages:
-            print(f"{stage:>14} {row['median_ms']['radix'][stage]:9.3f} {row['median_ms']['sah'].get(stage, float('nan')):9.3f}")
-        print(f"{'wall':>14} {row['wall_median_ms']['radix']:9.3f} {row['wall_median_ms']['sah']:9.3f}")
+            print(f"{stage:>14}" + "".join(f" {row['median_ms'][name].get(stage, float('nan')):10.3f}" for name in names))
+        print(f"{'wall':>14}" + "".join(f" {row['wall_median_ms'][name]:10.3f}" for name in names))
         print(f"answers at 20,000 points: exact |d| max difference {row['exact_max_abs_difference']:.3g}, "
               f"signs differing {row['exact_sign_differences']}; adf |d| {row['adf_max_abs_difference_of_magnitudes']:.3g}, "
               f"signs differing {row['adf_sign_differences']}")
