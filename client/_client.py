@@ -28,6 +28,7 @@ from badf.protocol import (
     QUERY_OUTPUTS,
     AccessDeniedError,
     BadfError,
+    BvhShape,
     InvalidOptionError,
     Deleted,
     DeleteRequest,
@@ -157,6 +158,7 @@ class Client:
         refine: RefineMethod = "surface",
         halo: int = 1,
         region=None,
+        bvh: BvhShape = "morton",
         frame: int = 0,
         replace: bool = False,
         worker: str | None = None,
@@ -166,10 +168,10 @@ class Client:
 
         Placed on `worker`, or on the least-loaded worker; an existing object of that name is an
         ObjectExistsError unless `replace`. `frame` numbers the initial vertices. Blocks until the worker
-        has built the field; see ObjectOptions for depth, sign, band, coherence, refine, halo and region.
+        has built the field; see ObjectOptions for depth, sign, band, coherence, refine, halo, region and bvh.
         """
         options = ObjectOptions(depth=depth, sign=sign, band=band, coherence=coherence, refine=refine, halo=halo,
-                                region=region)
+                                region=region, bvh=bvh)
         request = RegisterRequest(name, vertices, faces, options, frame=frame, replace=replace)
         info = self._register(request, worker=worker, timeout=timeout)
         return RemoteObject(self, info, vertices=_owned(request.vertices, vertices), faces=_owned(request.faces, faces))

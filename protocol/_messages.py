@@ -38,12 +38,14 @@ from badf.protocol._wire import NUMPY_DTYPES, Descriptor, WireDtype, pack, unpac
 
 SignMethod = Literal["auto", "pseudonormal", "winding", "none"]
 RefineMethod = Literal["surface", "centroid"]
+BvhShape = Literal["morton", "sah"]
 QueryMode = Literal["adf", "exact"]
 QueryOutput = Literal["distance", "closest_point", "normal", "face"]
 Axis = Literal["x", "y", "z"]
 
 SIGN_METHODS: tuple[str, ...] = get_args(SignMethod)
 REFINE_METHODS: tuple[str, ...] = get_args(RefineMethod)
+BVH_SHAPES: tuple[str, ...] = get_args(BvhShape)
 QUERY_MODES: tuple[str, ...] = get_args(QueryMode)
 QUERY_OUTPUTS: tuple[str, ...] = get_args(QueryOutput)
 AXES: tuple[str, ...] = get_args(Axis)
@@ -378,7 +380,9 @@ class ObjectOptions:
     split ("surface": every cell the surface crosses; "centroid": the paper's rule). halo: finest cells of
     refinement added around those. region: a region of interest, ((xmin, ymin, zmin), (xmax, ymax, zmax)) in
     the mesh's coordinates (None: everywhere): the octree is refined only where it needs, and ADF queries
-    outside it are answered exactly. The engine's docstring (badf.server.adf.DistanceField) has the details.
+    outside it are answered exactly. bvh: the BVH's shape ("morton": linked on the device at once; "sah": made
+    by the surface area heuristic on the worker's host at registration, which takes longer, for faster frames).
+    The engine's docstring (badf.server.adf.DistanceField) has the details.
     """
 
     depth: int = 7
@@ -388,6 +392,7 @@ class ObjectOptions:
     refine: RefineMethod = "surface"
     halo: int = 1
     region: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    bvh: BvhShape = "morton"
 
     def __post_init__(self) -> None:
         owner = "ObjectOptions"
@@ -400,12 +405,13 @@ class ObjectOptions:
         _set(self, "halo", _check_int(owner, "halo", self.halo, maximum=MAX_HALO))
         if self.region is not None:
             _set(self, "region", _check_box(owner, "region", self.region))
+        _check_choice(owner, "bvh", self.bvh, BVH_SHAPES)
 
     def to_json(self) -> dict[str, Any]:
         return {
             "depth": self.depth, "sign": self.sign, "band": self.band, "coherence": self.coherence,
             "refine": self.refine, "halo": self.halo,
-            "region": None if self.region is None else [*self.region[0], *self.region[1]],
+            "region": None if self.region is None else [*self.region[0], *self.region[1]], "bvh": self.bvh,
         }  # fmt: skip
 
     @classmethod
@@ -418,6 +424,7 @@ class ObjectOptions:
             refine=fields.text("refine"),  # type: ignore[arg-type]
             halo=fields.integer("halo"),
             region=_box_of(fields.items("region", (int, float), "numbers", optional=True)),
+            bvh=fields.text("bvh", optional=True) or "morton",  # type: ignore[arg-type]  # absent: a client before it
         )
 
 

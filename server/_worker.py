@@ -136,6 +136,7 @@ def engine_field_builder(device: str | None) -> tuple[FieldBuilder, str]:
             refine=options.refine,
             halo=options.halo,
             region=options.region,
+            bvh=options.bvh,
             device=resolved,
         )
 

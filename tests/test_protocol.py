@@ -495,6 +495,19 @@ def test_a_region_of_interest_is_a_box_of_finite_numbers() -> None:
             decode(pack(MessageKind.REGISTER, metadata, [VERTICES, FACES]), RegisterRequest)
 
 
+def test_the_bvh_shape_goes_on_the_wire_and_an_older_clients_request_reads_as_morton() -> None:
+    request = RegisterRequest("a", VERTICES, FACES, ObjectOptions(bvh="sah"))
+    assert decode(encode(request), RegisterRequest).options.bvh == "sah"
+    with pytest.raises(InvalidOptionError, match="ObjectOptions.bvh must be one of"):
+        ObjectOptions(bvh="kd")
+    metadata = request.metadata()
+    del metadata["options"]["bvh"]  # a client from before the option
+    assert decode(pack(MessageKind.REGISTER, metadata, [VERTICES, FACES]), RegisterRequest).options.bvh == "morton"
+    metadata["options"]["bvh"] = 3
+    with pytest.raises(MetadataError, match="'bvh' must be a string"):
+        decode(pack(MessageKind.REGISTER, metadata, [VERTICES, FACES]), RegisterRequest)
+
+
 def test_key_space() -> None:
     keys = KeySpace("lab/badf")
     assert keys.object_query("bunny") == "lab/badf/obj/bunny/query"

@@ -23,6 +23,7 @@ from tolerances import EXACT_DISTANCE
 
 from badf.client import Client, RemoteObject
 from badf.protocol import (
+    BVH_SHAPES,
     CELL_EMPTY,
     CELL_LEAF,
     QUERY_MODES,
@@ -101,6 +102,7 @@ def test_protocol_choices_match_the_engine() -> None:
     assert set(SIGN_METHODS) == set(adf.SIGN_METHODS)
     assert set(QUERY_MODES) == set(adf.QUERY_MODES)
     assert set(QUERY_OUTPUTS) == set(adf.QUERY_OUTPUTS)
+    assert set(BVH_SHAPES) == set(adf.BVH_SHAPES)
 
 
 @pytest.mark.parametrize(
@@ -111,6 +113,7 @@ def test_protocol_choices_match_the_engine() -> None:
         ("homer", {"depth": 5, "sign": "none", "coherence": False, "refine": "centroid", "halo": 0}),
         ("sheet", {"depth": 6, "sign": "auto"}),
         ("spot", {"depth": 5, "region": ((-0.2, -0.5, -0.5), (0.3, 0.5, 0.5))}),
+        ("fandisk", {"depth": 5, "bvh": "sah"}),
     ],
 )
 def test_registered_meshes_answer_like_the_engine(client: Client, mesh: str, options: dict) -> None:
@@ -121,6 +124,7 @@ def test_registered_meshes_answer_like_the_engine(client: Client, mesh: str, opt
     assert info.field_info["sign"] == local.info()["sign"]
     assert info.field_info["region"] == local.info()["region"]
     assert info.options.region == options.get("region")
+    assert info.field_info["bvh"] == info.options.bvh == options.get("bvh", "morton")
     assert (info.vertex_count, info.face_count) == (local.vertex_count, local.face_count)
     assert_same_answers(remote, local, sample_points(vertices))
 

@@ -8,12 +8,12 @@
 
 from badf.server.adf._buffers import DeviceMemoryError
 from badf.server.adf._field import DistanceField, FieldUnavailableError, QueryResult
-from badf.server.adf._inputs import QUERY_MODES, QUERY_OUTPUTS, InvalidInputError
+from badf.server.adf._inputs import BVH_SHAPES, QUERY_MODES, QUERY_OUTPUTS, InvalidInputError
 from badf.server.adf._sign import SIGN_METHODS
 from badf.server.adf._slice import Slice
 from badf.server.adf._warm_up import warm_up
 
 __all__ = [
     "DistanceField", "QueryResult", "Slice", "InvalidInputError", "DeviceMemoryError", "FieldUnavailableError",
-    "QUERY_MODES", "QUERY_OUTPUTS", "SIGN_METHODS", "warm_up",
+    "BVH_SHAPES", "QUERY_MODES", "QUERY_OUTPUTS", "SIGN_METHODS", "warm_up",
 ]
