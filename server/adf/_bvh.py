@@ -144,18 +144,15 @@ class Bvh:
         self._cuts: dict[int, wp.array] = {}
 
     def build(self, vertices: wp.array, faces: wp.array, origin: wp.vec3, side: float) -> None:
-        """Sort the triangles by the Morton code of their centroid in the domain and link the tree (a given shape:
-        link it the first time, and only sort the keys after)."""
-        if self.shape is not None:
-            self._sort_keys_of_shape(vertices, faces, origin, side)
-            return
+        """Sort the triangles by the Morton code of their centroid in the domain and link the tree on them (a given
+        shape: link it the first time, and after only sort the keys, which seed searches)."""
         n = self.face_count
-        resolution = 1 << self.code_levels
         b = self._buffers
-        # what only a build uses: the sort, with its room for twice the count, and the radix tree's links
-        # (given back by `give_back_build`)
+        # what only a build uses: the sort, with its room for twice the count, and the tree's links (given back by
+        # `give_back_build`)
         keys = b.ensure("bvh.build.keys", 2 * n, wp.int64)
         order = b.ensure("bvh.build.faces", 2 * n, wp.int32)
+        resolution = 1 << self.code_levels
         wp.launch(
             _triangle_keys,
             dim=n,
@@ -165,6 +162,11 @@ class Bvh:
         )
         wp.utils.radix_sort_pairs(keys, order, n)
         wp.copy(self.leaf_key, keys, count=n)
+        if self.shape is not None:
+            if not self._shape_linked:
+                self._link_shape()
+            wp.launch(_leaf_of_key, dim=n, inputs=[order, self.face_leaf], outputs=[self.key_leaf], device=self.device)
+            return
         wp.copy(self.leaf_face, order, count=n)
         wp.launch(_invert_order, dim=n, inputs=[self.leaf_face], outputs=[self.face_leaf], device=self.device)
         if n > 1:
@@ -178,27 +180,18 @@ class Bvh:
             self._link(left, right, first, last)
         self._cuts.clear()
 
-    def _sort_keys_of_shape(self, vertices: wp.array, faces: wp.array, origin: wp.vec3, side: float) -> None:
+    def _link_shape(self) -> None:
+        """Upload the given shape (its leaves' faces, children and leaf ranges) and link it, once (its first build,
+        which is never part of a graph: it copies from the host)."""
         n = self.face_count
-        b = self._buffers
-        if not self._shape_linked:
-            shape = self.shape
-            self.leaf_face.assign(shape.order)
-            wp.launch(_invert_order, dim=n, inputs=[self.leaf_face], outputs=[self.face_leaf], device=self.device)
-            links = {name: b.ensure(f"bvh.build.{name}", n - 1, wp.int32) for name in ("left", "right", "first", "last")}
-            for name, array in links.items():
-                array.assign(getattr(shape, name))
-            self._link(links["left"], links["right"], links["first"], links["last"])
-            self._shape_linked = True
-        keys = b.ensure("bvh.build.keys", 2 * n, wp.int64)
-        order = b.ensure("bvh.build.faces", 2 * n, wp.int32)
-        wp.launch(_triangle_keys, dim=n,
-                  inputs=[vertices, faces, origin, (1 << self.code_levels) / side, 1 << self.code_levels,
-                          self.index_bits],
-                  outputs=[keys, order], device=self.device)
-        wp.utils.radix_sort_pairs(keys, order, n)
-        wp.copy(self.leaf_key, keys, count=n)
-        wp.launch(_leaf_of_key, dim=n, inputs=[order, self.face_leaf], outputs=[self.key_leaf], device=self.device)
+        self.leaf_face.assign(self.shape.order)
+        wp.launch(_invert_order, dim=n, inputs=[self.leaf_face], outputs=[self.face_leaf], device=self.device)
+        links = {name: self._buffers.ensure(f"bvh.build.{name}", n - 1, wp.int32)
+                 for name in ("left", "right", "first", "last")}
+        for name, array in links.items():
+            array.assign(getattr(self.shape, name))
+        self._link(links["left"], links["right"], links["first"], links["last"])
+        self._shape_linked = True
 
     def _link(self, left: wp.array, right: wp.array, first: wp.array, last: wp.array) -> None:
         """Link the slots and the 4-wide view from a binary tree's children and leaf ranges (left and right are

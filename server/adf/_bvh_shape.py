@@ -7,8 +7,9 @@ update on this shape against 1.34 on Morton's (docs/engine.md, "The BVH's shape"
 (the refit), so a shape made once from the first frame serves every frame after, and moving the domain keeps it.
 
 The tree is built top-down a level at a time, every range of the level at once in numpy: each range is cut on
-the longest axis of its centroids' bounds, into bins (32, or one per triangle in a smaller range), and split
-between the two bins where the areas of the two sides' boxes, each times its triangle count, sum least.
+the longest axis of its centroids' bounds, into 32 even bins (a range of at most 32 triangles: one bin per triangle,
+in their order along the axis), and split between the two bins where the areas of the two sides' boxes, each times
+its triangle count, sum least.
 
 The result is the radix tree's layout, which the rest of the BVH reads: internal nodes 0..n-2 (0 the root), leaf
 k being the k-th triangle of `order` (node n - 1 + k), each internal node's leaves a range first..last of it.
@@ -48,27 +49,27 @@ def sah_shape(vertices: np.ndarray, faces: np.ndarray) -> Shape:
     order = np.arange(n)
     left, right = np.empty(n - 1, np.int32), np.empty(n - 1, np.int32)
     first, last = np.empty(n - 1, np.int32), np.empty(n - 1, np.int32)
-    # the ranges still to split, each an internal node: begin, count, node id, depth
+    # the ranges still to split, each an internal node: begin, count, depth, and how many times the path from the
+    # root to it turns right. Nodes are numbered in preorder, so that a subtree's nodes lie together in memory (as
+    # the radix tree's do, by their ranges): the internal nodes before a node are its ancestors and those of the
+    # subtrees left of its path, which hold its first leaf's count of leaves in as many subtrees as right turns.
     begin, count = np.array([0]), np.array([n])
-    node, depth = np.array([0]), np.array([0])
-    next_id, deepest = 1, 0
+    depth, turns = np.array([0]), np.array([0])
+    deepest = 0
     while len(begin):
+        node = begin + depth - turns
         first[node], last[node] = begin, begin + count - 1
         split = _split(order, begin, count, depth, box, centre)
-        sides = ((begin, split), (begin + split, count - split))
+        sides = ((begin, split, turns), (begin + split, count - split, turns + 1))
         children = []
         ranges = []
-        for side_begin, side_count in sides:
-            is_leaf = side_count == 1
-            ids = np.where(is_leaf, n - 1 + side_begin, 0)
-            inner = np.flatnonzero(~is_leaf)
-            ids[inner] = next_id + np.arange(len(inner))
-            next_id += len(inner)
-            children.append(ids)
-            ranges.append((side_begin[inner], side_count[inner], ids[inner], depth[inner] + 1))
+        for side_begin, side_count, side_turns in sides:
+            inner = side_count > 1
+            children.append(np.where(inner, side_begin + depth + 1 - side_turns, n - 1 + side_begin))
+            ranges.append((side_begin[inner], side_count[inner], depth[inner] + 1, side_turns[inner]))
         left[node], right[node] = children
         deepest = max(deepest, int(depth.max()) + 1)
-        begin, count, node, depth = (np.concatenate(parts) for parts in zip(*ranges))
+        begin, count, depth, turns = (np.concatenate(parts) for parts in zip(*ranges))
     return Shape(order.astype(np.int32), left, right, first, last, deepest)
 
 
@@ -87,10 +88,20 @@ def _split(order, begin, count, depth, box, centre) -> np.ndarray:
     halves = count // 2
     by_area = (count > 2) & (width > 0)
     bins = np.where(by_area, np.minimum(BINS, count), 1)
-    scale = np.divide(bins, width, out=np.zeros(ranges), where=width > 0)
-    along = (c[np.arange(len(ids)), axis[of]] - c_lo[of, axis[of]]) * scale[of]
+    # where along the range's axis each centroid lies, 0 to 1
+    along = (c[np.arange(len(ids)), axis[of]] - c_lo[of, axis[of]]) * np.divide(1.0, width, out=np.zeros(ranges),
+                                                                                where=width > 0)[of]
+    bin_of = np.minimum((along * bins[of]).astype(np.int64), bins[of] - 1)
+    # a range of at most BINS triangles takes each in a bin of its own, in their order along the axis: every cut
+    # between two of them is tried, where even bins would put several in one and try fewer
+    few = (by_area & (count <= BINS))[of]
+    if few.any():
+        ranked = np.argsort(of + np.minimum(along, 0.999999), kind="stable")
+        rank = np.empty(len(ids), np.int64)
+        rank[ranked] = np.arange(len(ids)) - starts[of[ranked]]
+        bin_of = np.where(few, rank, bin_of)
     group_start = np.cumsum(bins) - bins
-    group = group_start[of] + np.minimum(along.astype(np.int64), bins[of] - 1)  # ascending within each range
+    group = group_start[of] + bin_of  # ascending within each range
     sorted_at = np.argsort(group, kind="stable")
     order[at] = ids[sorted_at]  # bins in order within each range; a range in one bin keeps its order
     groups = int(bins.sum())
