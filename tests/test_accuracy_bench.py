@@ -36,9 +36,13 @@ def test_small_accuracy_run_writes_consistent_results(tmp_path):
     assert rows["dense", 4]["errors"]["near"]["max"] < rows["dense", 3]["errors"]["near"]["max"]
     # spot is closed: auto signs it by pseudonormals, so asking for them (which skips the look for parts running
     # into each other) is a switch too, with the same answers
-    assert len(report["switches"]) == 8
+    assert len(report["switches"]) == 10
     asked = [r for r in report["switches"] if r["options"] == {"sign": "pseudonormal"}]
     assert len(asked) == 1 and asked[0]["difference_to_auto"] == 0.0
+    # the SAH-shaped BVH for ADF and exact queries, the same answers as the default's Morton tree
+    sah = [r for r in report["switches"] if r["options"] == {"bvh": "sah"}]
+    assert [r["mode"] for r in sah] == ["adf", "exact"] and sah[0]["difference_to_default"] == 0.0
+    assert all(r["errors"][name]["max"] <= tol.EXACT_DISTANCE for name in accuracy.POINT_SETS for r in sah[1:])
 
 
 def test_subdivided_bunnies_are_not_there_without_the_bunny(tmp_path, monkeypatch, capsys):
