@@ -40,7 +40,7 @@ def sah_shape(vertices: np.ndarray, faces: np.ndarray) -> Shape:
     """The SAH tree of the triangles `vertices[faces]` (n >= 2)."""
     corners = np.asarray(vertices, np.float64)[faces]
     lower, upper = corners.min(axis=1), corners.max(axis=1)
-    # in a unit box, so the segmented scans' offsets (_segment_scan) are far larger than any coordinate
+    # in a unit box, so that the running minima's offsets (_running_min) are far larger than any coordinate
     origin, scale = lower.min(axis=0), 1.0 / max(float((upper.max(axis=0) - lower.min(axis=0)).max()), 1e-300)
     lower, upper = (lower - origin) * scale, (upper - origin) * scale
     centre = (corners.mean(axis=1) - origin) * scale
