@@ -4,8 +4,8 @@
 
 Each case is drawn from its seed alone: a mesh (a piece of a shared mesh, a noisy or holed sphere, a soup with
 repeated corners, a sphere with duplicated and flipped faces, a folded sheet, a sphere scaled and moved far from
-the origin), options (depth 3 to 6, every sign method, refinement, halo, coherence, now and then a band or a
-region) and up to
+the origin), options (depth 3 to 6, every sign method, refinement, halo, coherence, now and then a band, a
+region or the SAH-shaped BVH) and up to
 three frames (a wobble, jitter from 1e-6 to 0.1 of the size, a throw of up to 1000 sizes, a collapse onto a plane,
 a scaling, or the same frame again), with float32 or float64 input, and far corners searched by subtree
 (CornerField.far_cells, which only CUDA chooses on its own) or not. A refused mesh or frame (InvalidInputError)
@@ -123,7 +123,7 @@ FAR_CELLS = (None, None, 0, 2, 12)
 
 def random_options(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> dict:
     """The field's options for a mesh within [lo, hi]: a band in a quarter of cases, a region (a box within or
-    across the mesh's bounds) in a fifth."""
+    across the mesh's bounds) in a fifth, the SAH-shaped BVH in three tenths."""
     size = float(np.linalg.norm(hi - lo))
     depth = int(rng.integers(3, 7))
     sign = str(rng.choice(["auto", "auto", "winding", "none", "pseudonormal"]))
@@ -135,6 +135,8 @@ def random_options(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> 
     if rng.random() < 0.2:
         corners = lo + (hi - lo) * rng.uniform(-0.2, 1.2, size=(2, 3))
         options["region"] = np.sort(corners, axis=0).tolist()
+    if rng.random() < 0.3:
+        options["bvh"] = "sah"
     return options
 
 
