@@ -102,13 +102,13 @@ def _split(order, begin, count, depth, box, centre) -> np.ndarray:
         bin_of = np.where(few, rank, bin_of)
     group_start = np.cumsum(bins) - bins
     group = group_start[of] + bin_of  # ascending within each range
-    sorted_at = np.argsort(group, kind="stable")
-    order[at] = ids[sorted_at]  # bins in order within each range; a range in one bin keeps its order
+    sorted_ids = ids[np.argsort(group, kind="stable")]
+    order[at] = sorted_ids  # bins in order within each range; a range in one bin keeps its order
     groups = int(bins.sum())
     in_group = np.bincount(group, minlength=groups)
-    filled = in_group > 0
-    g_box = np.full((groups, 6), np.inf)
-    g_box[filled] = np.minimum.reduceat(box[order[at]], (np.cumsum(in_group) - in_group)[filled])
+    # each bin's box (an empty bin's reads its neighbour's from reduceat, and is emptied after)
+    g_box = np.minimum.reduceat(box[sorted_ids], np.minimum(np.cumsum(in_group) - in_group, len(ids) - 1))
+    g_box[in_group == 0] = np.inf
     range_of_group = np.repeat(np.arange(ranges), bins)
     # the boxes of bins 0..k and of bins k+1.. of each range, and the counts on the left
     left = _running_min(g_box, range_of_group)
