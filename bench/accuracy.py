@@ -291,7 +291,7 @@ def measure_switches(mesh: Mesh, sets: PointSets, depth: int, args) -> list[dict
         row, _, answers = measure_adf(mesh, sets, depth, {"sign": "pseudonormal"}, args)
         row["switch"] = ("pseudonormals asked for (no look for parts running into each other, at registration or "
                          "by frame)")
-        row["difference_to_auto"] = max(float(np.abs(answers[name] - ref_answers[name]).max()) for name in POINT_SETS)
+        row["difference_to_auto"] = _largest_difference(answers, ref_answers)
         row["changes"] = f"max difference to auto's answers: {row['difference_to_auto'] / mesh.diag:.1e} diag"
         rows.append(row)
 
@@ -323,8 +323,7 @@ def measure_switches(mesh: Mesh, sets: PointSets, depth: int, args) -> list[dict
         row, _, answers = measure_adf(mesh, sets, depth, {"bvh": "sah"}, args, mode=mode)
         row["switch"] = f"BVH shaped by surface area (made on the host at registration, then kept), {mode} query"
         if mode == "adf":
-            row["difference_to_default"] = max(float(np.abs(answers[name] - ref_answers[name]).max())
-                                               for name in POINT_SETS)
+            row["difference_to_default"] = _largest_difference(answers, ref_answers)
             row["changes"] = f"max difference to the default's answers: {row['difference_to_default'] / mesh.diag:.1e} diag"
         rows.append(row)
 
@@ -334,6 +333,11 @@ def measure_switches(mesh: Mesh, sets: PointSets, depth: int, args) -> list[dict
         row["switch"] = f"{mode} query with all four outputs (compare with distance only)"
         rows.append(row)
     return rows
+
+
+def _largest_difference(answers: dict, reference: dict) -> float:
+    """The largest difference between two configurations' answers over every point set."""
+    return max(float(np.abs(answers[name] - reference[name]).max()) for name in POINT_SETS)
 
 
 def _brief(errors: dict) -> str:

@@ -19,6 +19,7 @@ import numpy as np
 
 from badf.bench._common import BenchFlagError, bench_device_name, deform, print_table, start_warp, timestamp
 from badf.bench._oracle import ORACLE_SAMPLE, errors_against, signed_distance
+from badf.protocol import BVH_SHAPES
 from badf.server._mesh_files import MESH_HELP, read_mesh
 
 
@@ -715,7 +716,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--depth", type=int, default=7, help="octree depth of the main configuration")
     parser.add_argument("--repeat", type=int, default=20, help="timed repeats per measurement")
     parser.add_argument("--quick", action="store_true", help="only the main configuration")
-    parser.add_argument("--bvh", choices=("morton", "sah"), default="morton",
+    parser.add_argument("--bvh", choices=BVH_SHAPES, default="morton",
                         help="the BVH's shape in the main configuration (the other one is a row of the full run)")
     parser.add_argument("--far-sweep", type=int, nargs="+", metavar="DEPTH",
                         help="only time updates with far corners searched by subtree beside the others, at these "
