@@ -73,6 +73,49 @@ def test_sah_shape_is_a_tree_over_every_triangle_within_the_searches_depth(name)
     assert int(depth.max()) == shape.depth <= MAX_DEPTH
 
 
+def _root_split_by_area(vertices: np.ndarray, faces: np.ndarray) -> int:
+    """The root's left count by the heuristic, worked out in numpy: the triangles binned along the longest axis of
+    their centroids' bounds (32 even bins, or a bin each by rank along it for at most 32), and the first cut
+    between bins with the least sum of box area times count on each side."""
+    corners = vertices[faces].astype(np.float64)
+    lower, upper, centre = corners.min(axis=1), corners.max(axis=1), corners.mean(axis=1)
+    axis = int(np.argmax(centre.max(axis=0) - centre.min(axis=0)))
+    along = centre[:, axis] - centre[:, axis].min()
+    n = len(faces)
+    if n <= _bvh_shape.BINS:
+        bins = np.empty(n, np.int64)
+        bins[np.argsort(along, kind="stable")] = np.arange(n)
+    else:
+        bins = np.minimum((along / along.max() * _bvh_shape.BINS).astype(np.int64), _bvh_shape.BINS - 1)
+
+    def half_area(members):
+        d = upper[members].max(axis=0) - lower[members].min(axis=0)
+        return d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
+
+    costs = []
+    for cut in range(int(bins.max())):
+        on_left = bins <= cut
+        if 0 < on_left.sum() < n:
+            costs.append((half_area(on_left) * on_left.sum() + half_area(~on_left) * (~on_left).sum(), on_left.sum()))
+    return int(min(costs, key=lambda c: c[0])[1])
+
+
+@pytest.mark.parametrize("count", [7, 32, 33, 1000])
+def test_the_root_is_split_where_the_heuristic_costs_least(count):
+    rng = np.random.default_rng(count)
+    # denser towards 0, so that the least cost falls between even fractions of the axis, where the bins differ
+    centres = rng.uniform(size=(count, 3)) ** 2 * np.array([3.0, 1.0, 0.5])
+    sizes = rng.uniform(0.01, 1.0, size=count)
+    vertices = (centres[:, None, :] + rng.normal(size=(count, 3, 3)) * sizes[:, None, None]).reshape(-1, 3)
+    faces = np.arange(3 * count).reshape(-1, 3)
+    shape = sah_shape(vertices, faces)
+    left_count = 1 if shape.left[0] >= count - 1 else shape.last[shape.left[0]] - shape.first[shape.left[0]] + 1
+    assert left_count == _root_split_by_area(vertices, faces)
+    # the left side holds the triangles of the bins before the cut: the leaves' order puts them first
+    along = vertices[faces].mean(axis=1)[:, np.argmax(np.ptp(vertices[faces].mean(axis=1), axis=0))]
+    assert along[shape.order[:left_count]].max() <= along[shape.order[left_count:]].min()
+
+
 def test_the_depth_cap_splits_evenly_where_area_would_go_deeper(monkeypatch):
     vertices, faces = CASES["doubling"]
     assert sah_shape(vertices, faces).depth <= MAX_DEPTH
