@@ -633,27 +633,17 @@ def run(args: argparse.Namespace) -> int:
         "repeat": repeat,
         "configurations": [],
     }
-    configs = [{"depth": args.depth} | ({"bvh": args.bvh} if args.bvh != "morton" else {})]
-    if not args.quick:
-        configs += [
-            {"depth": args.depth, "bvh": "morton" if args.bvh != "morton" else "sah"},
-            {"depth": args.depth, "graphs": False},
-            {"depth": args.depth, "one_stream": True},
-            {"depth": args.depth, "coherence": False},
-            {"depth": args.depth, "sign": "pseudonormal"},
-            {"depth": args.depth, "sign": "none"},
-            {"depth": args.depth, "band": float(np.linalg.norm(vertices.max(0) - vertices.min(0))) * 0.02},
-            {"depth": args.depth, "halo": 0},
-            {"depth": args.depth, "refine": "centroid", "halo": 0},
-            {"depth": args.depth, "region": quarter_of_the_box(vertices)},
-        ] + [{"depth": d} for d in range(5, 10) if d != args.depth]
+    configs = [{"depth": args.depth} | ({"bvh": args.bvh} if args.bvh != "auto" else {})]
     rows, region_rows = [], []
-    for options in configs:
+    for options in configs:  # the full run's rows join the list once the main configuration has run
         result = measure_field(vertices, faces, device=device, repeat=repeat, **options)
         field, current = result.pop("field"), result.pop("vertices")
         if options == configs[0]:
             result.update(measure_queries(field, current, faces, device=device, repeat=repeat))
             result["traversal"] = measure_traversals(field, current, faces, device=device, repeat=repeat)
+            if not args.quick:
+                other_shape = "morton" if field.info()["bvh"] == "sah" else "sah"
+                configs += _switches(args.depth, vertices, other_shape=other_shape)
         if "region" in options:  # what the region costs queries (exact outside it), and their accuracy
             result.update(measure_queries(field, current, faces, device=device, repeat=repeat))
             region_rows.append(result)
@@ -710,14 +700,31 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _switches(depth: int, vertices: np.ndarray, *, other_shape: str) -> list[dict]:
+    """The full run's configurations beside the main one: each switch, then the other depths."""
+    return [
+        {"depth": depth, "bvh": other_shape},
+        {"depth": depth, "graphs": False},
+        {"depth": depth, "one_stream": True},
+        {"depth": depth, "coherence": False},
+        {"depth": depth, "sign": "pseudonormal"},
+        {"depth": depth, "sign": "none"},
+        {"depth": depth, "band": float(np.linalg.norm(vertices.max(0) - vertices.min(0))) * 0.02},
+        {"depth": depth, "halo": 0},
+        {"depth": depth, "refine": "centroid", "halo": 0},
+        {"depth": depth, "region": quarter_of_the_box(vertices)},
+    ] + [{"depth": d} for d in range(5, 10) if d != depth]
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mesh", required=True, help=MESH_HELP)
     parser.add_argument("--device", default=None, help="cpu, cuda:0, ... (default: the first GPU, else cpu)")
     parser.add_argument("--depth", type=int, default=7, help="octree depth of the main configuration")
     parser.add_argument("--repeat", type=int, default=20, help="timed repeats per measurement")
     parser.add_argument("--quick", action="store_true", help="only the main configuration")
-    parser.add_argument("--bvh", choices=BVH_SHAPES, default="morton",
-                        help="the BVH's shape in the main configuration (the other one is a row of the full run)")
+    parser.add_argument("--bvh", choices=BVH_SHAPES, default="auto",
+                        help="the BVH's shape in the main configuration (default: the engine's, sah on the CPU and "
+                             "morton on CUDA; the other one is a row of the full run)")
     parser.add_argument("--far-sweep", type=int, nargs="+", metavar="DEPTH",
                         help="only time updates with far corners searched by subtree beside the others, at these "
                              "depths, against off")

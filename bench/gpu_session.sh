@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One call on a GPU machine (the device tool): set up, check on CUDA, then time.
-#   bash bench/gpu_session.sh [tests] [engine] [signs] [split] [far] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] ...
+#   bash bench/gpu_session.sh [tests] [engine] [signs] [split] [far] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] [shapes] ...
 # Expects warp-lang and the wheels unpacked by ../shared/gpu/setup.sh (sourced before), the shared meshes
 # copied into $BADF_SHARED_DATA (default .gpudata/), and writes logs and JSON under $OUT.
 set -uo pipefail
@@ -59,6 +59,22 @@ for step in "$@"; do
       # 8 client processes x 4 objects on one worker on cuda:0 for 60 s; answers, counters, RSS and GPU memory
       python3 -m badf.bench.soak --device cuda:0 --seconds 60 --out "$out/soak-gpu.json" 2>&1 \
         | tee "$out/soak.log" | grep -v ' badf INFO ' ;;
+    shapes)
+      # the SAH shape's host time (one thread and all), its CUDA tests, then the engine on either shape, alternated:
+      # the bunny's engine bench on each, and objects on either alternated (about 5 minutes from a cold start)
+      python3 bench/probes/probe_shape_builder.py "$BADF_SHARED_DATA"/{stanford-bunny,armadillo-86k,spot}.npz 2>&1 \
+        | grep -v '^Module' | tee "$out/shape-builder.log"
+      python3 -m pytest -q -p no:cacheprovider -k cuda tests/test_bvh_shape.py \
+        "tests/test_engine.py::test_fast_winding_numbers_match_the_oracle_at_the_corners" \
+        "tests/test_engine.py::test_the_winding_walk_sums_its_expansions_to_float32_rounding" 2>&1 | tail -3 \
+        | tee "$out/pytest-shape.log"
+      for bvh in morton sah; do
+        python3 -m badf.bench.engine --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --quick --bvh "$bvh" \
+          --out "$out/engine-stanford-bunny-$bvh.json" 2>&1 | grep -v '^Module' | tee -a "$out/shapes.log"
+      done
+      python3 bench/probes/probe_bvh_shapes.py "$BADF_SHARED_DATA"/{stanford-bunny,armadillo-86k}.npz --device cuda:0 \
+        --depths 7 --rounds 4 --frames 20 --points 65536 --out "$out/shapes-cuda.json" 2>&1 | grep depth \
+        | tee "$out/shapes-cuda.log" ;;
     *)
       echo "unknown step $step" ;;
   esac

@@ -123,7 +123,7 @@ FAR_CELLS = (None, None, 0, 2, 12)
 
 def random_options(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> dict:
     """The field's options for a mesh within [lo, hi]: a band in a quarter of cases, a region (a box within or
-    across the mesh's bounds) in a fifth, the SAH-shaped BVH in three tenths."""
+    across the mesh's bounds) in a fifth, each of the BVH's shapes asked for in three tenths (auto's in the rest)."""
     size = float(np.linalg.norm(hi - lo))
     depth = int(rng.integers(3, 7))
     sign = str(rng.choice(["auto", "auto", "winding", "none", "pseudonormal"]))
@@ -135,8 +135,9 @@ def random_options(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> 
     if rng.random() < 0.2:
         corners = lo + (hi - lo) * rng.uniform(-0.2, 1.2, size=(2, 3))
         options["region"] = np.sort(corners, axis=0).tolist()
-    if rng.random() < 0.3:
-        options["bvh"] = "sah"
+    shape = rng.random()
+    if shape < 0.6:  # else auto: sah on the CPU, morton on CUDA
+        options["bvh"] = "sah" if shape < 0.3 else "morton"
     return options
 
 

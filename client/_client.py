@@ -158,7 +158,7 @@ class Client:
         refine: RefineMethod = "surface",
         halo: int = 1,
         region=None,
-        bvh: BvhShape = "morton",
+        bvh: BvhShape = "auto",
         frame: int = 0,
         replace: bool = False,
         worker: str | None = None,

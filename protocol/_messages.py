@@ -38,7 +38,7 @@ from badf.protocol._wire import NUMPY_DTYPES, Descriptor, WireDtype, pack, unpac
 
 SignMethod = Literal["auto", "pseudonormal", "winding", "none"]
 RefineMethod = Literal["surface", "centroid"]
-BvhShape = Literal["morton", "sah"]
+BvhShape = Literal["auto", "morton", "sah"]
 QueryMode = Literal["adf", "exact"]
 QueryOutput = Literal["distance", "closest_point", "normal", "face"]
 Axis = Literal["x", "y", "z"]
@@ -381,7 +381,8 @@ class ObjectOptions:
     refinement added around those. region: a region of interest, ((xmin, ymin, zmin), (xmax, ymax, zmax)) in
     the mesh's coordinates (None: everywhere): the octree is refined only where it needs, and ADF queries
     outside it are answered exactly. bvh: the BVH's shape ("morton": linked on the device at once; "sah": made
-    by the surface area heuristic on the worker's host at registration, which takes longer, for faster frames).
+    by the surface area heuristic on the worker's host at registration, which takes longer, for faster frames;
+    "auto": sah on a CPU worker, morton on a GPU; the object's info says which).
     The engine's docstring (badf.server.adf.DistanceField) has the details.
     """
 
@@ -392,7 +393,7 @@ class ObjectOptions:
     refine: RefineMethod = "surface"
     halo: int = 1
     region: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
-    bvh: BvhShape = "morton"
+    bvh: BvhShape = "auto"
 
     def __post_init__(self) -> None:
         owner = "ObjectOptions"

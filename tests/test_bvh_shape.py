@@ -116,6 +116,19 @@ def test_the_root_is_split_where_the_heuristic_costs_least(count):
     assert along[shape.order[:left_count]].max() <= along[shape.order[left_count:]].min()
 
 
+@pytest.mark.parametrize("name", ["stanford-bunny", "doubling", "random soup", "one triangle 200 times"])
+def test_the_subtrees_built_side_by_side_make_the_same_tree(name, monkeypatch):
+    """Below the top of the tree, subtrees are shared out over threads: the tree is the one thread's, whatever the
+    count (a small grain here, so that the soups are shared out too)."""
+    monkeypatch.setattr(_bvh_shape, "_SHARED_GRAIN", 16)
+    vertices, faces = CASES[name]
+    alone = sah_shape(vertices, faces, threads=1)
+    for threads in (2, 5):
+        shared = sah_shape(vertices, faces, threads=threads)
+        for a, b in zip(alone, shared):
+            assert np.array_equal(a, b)
+
+
 def test_the_depth_cap_splits_evenly_where_area_would_go_deeper(monkeypatch):
     vertices, faces = CASES["doubling"]
     assert sah_shape(vertices, faces).depth <= MAX_DEPTH
@@ -129,7 +142,7 @@ def test_sah_fields_have_the_morton_fields_distances_and_are_exact(device, name,
     exact query's distance is the Morton tree's (the searches find the least over every triangle whatever the
     tree), exact against the oracle, and the same without coherence (whose searches start from the keys)."""
     vertices, faces = meshes.load(name)
-    morton = DistanceField(vertices, faces, depth=depth, device=device)
+    morton = DistanceField(vertices, faces, depth=depth, bvh="morton", device=device)
     sah = DistanceField(vertices, faces, depth=depth, bvh="sah", device=device)
     sah_alone = DistanceField(vertices, faces, depth=depth, bvh="sah", coherence=False, device=device)
     assert sah.info()["bvh"] == "sah" and morton.info()["bvh"] == "morton"
@@ -172,9 +185,21 @@ def distance_to_own_face(points, vertices, faces, face) -> np.ndarray:
     return np.linalg.norm(points - oracle.closest_points_on_triangles(points, tri[:, 0], tri[:, 1], tri[:, 2]), axis=1)
 
 
+def test_auto_takes_the_sah_tree_on_the_cpu_and_mortons_on_cuda(device):
+    vertices, faces = meshes.load("spot")
+    field = DistanceField(vertices, faces, depth=3, device=device)
+    expected = "sah" if device == "cpu" else "morton"
+    assert field.info()["bvh"] == expected and field.info()["bvh_requested"] == "auto"
+    assert (field.stats()["bvh_shape_ms"] is not None) == (expected == "sah")
+    asked = DistanceField(vertices, faces, depth=3, bvh=expected, device=device)
+    points = vertices[::50] + np.float32(0.05)
+    np.testing.assert_array_equal(field.query(points, mode="exact", outputs=("distance", "face")).face,
+                                  asked.query(points, mode="exact", outputs=("distance", "face")).face)
+
+
 def test_the_bvh_shape_is_checked_and_a_single_triangle_needs_none(device):
     vertices, faces = meshes.load("single-triangle")
-    with pytest.raises(InvalidInputError, match="bvh must be one of morton, sah; got 'kd'"):
+    with pytest.raises(InvalidInputError, match="bvh must be one of auto, morton, sah; got 'kd'"):
         DistanceField(vertices, faces, depth=3, bvh="kd", device=device)
     field = DistanceField(vertices, faces, depth=3, bvh="sah", device=device)
     points = np.array([[0.2, 0.2, 0.5], [3.0, -1.0, 0.0]])

@@ -12,7 +12,6 @@ import oracle
 import tolerances as tol
 from badf.server.adf import DistanceField, InvalidInputError
 from badf.server.adf._distance import EXACT_ROUNDING, CornerField, _settle_far_list
-from badf.server.adf._tolerances import WINDING_FAR_FIELD
 from badf.server.adf._geometry import quantize
 from badf.server.adf._bvh import (
     EMPTY_BOX,
@@ -581,17 +580,19 @@ def _winding_numbers(bvh: BvhView, points: wp.array(dtype=wp.vec3), w: wp.array(
     w[i] = value
 
 
+@pytest.mark.parametrize("bvh", ["morton", "sah"])
 @pytest.mark.parametrize("name", ["spot", "fandisk", "torus", "cut sphere", "sheet"])
-def test_fast_winding_numbers_match_the_oracle_at_the_corners(device, name):
+def test_fast_winding_numbers_match_the_oracle_at_the_corners(device, name, bvh):
     """The BVH's winding numbers (exact solid angles near, two-term expansions of far nodes) against the
     float64 oracle, at corners of a depth-6 octree (most lie near the surface, where the expansions of
-    near-but-accepted nodes err most), leaving out corners on the surface, where w is undefined."""
+    near-but-accepted nodes err most), leaving out corners on the surface, where w is undefined; on either of the
+    BVH's shapes, whose walks take expansions from their own distances (WINDING_FAR_FIELD)."""
     if name == "cut sphere":
         vertices, faces = meshes.sphere()
         faces = faces[vertices[faces].mean(axis=1)[:, 2] < 0.5]
     else:
         vertices, faces = getattr(meshes, name)() if name in ("torus", "sheet") else meshes.load(name)
-    field = DistanceField(vertices, faces, depth=6, sign="winding", device=device)
+    field = DistanceField(vertices, faces, depth=6, sign="winding", bvh=bvh, device=device)
     positions, values, _ = field.corner_samples()
     rng = np.random.default_rng(5)
     positions = positions[rng.choice(len(positions), min(1500, len(positions)), replace=False)]
@@ -616,7 +617,7 @@ def _binary_expansion_walk(field: DistanceField, point: np.ndarray) -> tuple[flo
 
     def far(centre, radius):
         dist = np.linalg.norm(centre - p)
-        return dist > WINDING_FAR_FIELD * radius, abs(dist / (WINDING_FAR_FIELD * radius) - 1.0), dist
+        return dist > bvh.far_field * radius, abs(dist / (bvh.far_field * radius) - 1.0), dist
 
     total, margin, stack = 0.0, np.inf, [0]
     while stack:
@@ -648,8 +649,9 @@ def _binary_expansion_walk(field: DistanceField, point: np.ndarray) -> tuple[flo
     return total / (4 * np.pi), margin
 
 
+@pytest.mark.parametrize("bvh", ["morton", "sah"])
 @pytest.mark.parametrize("name", ["stanford-bunny", "torus", "sheet", "two-parts"])
-def test_the_winding_walk_sums_its_expansions_to_float32_rounding(device, name):
+def test_the_winding_walk_sums_its_expansions_to_float32_rounding(device, name, bvh):
     """The corners' float32 winding numbers against a float64 walk down the binary tree that takes the same
     terms (the engine's stored moments where their far test holds, exact solid angles elsewhere): every point
     whose far tests all lie clear of their threshold (where float32 and float64 cannot choose apart) agrees to
@@ -662,7 +664,7 @@ def test_the_winding_walk_sums_its_expansions_to_float32_rounding(device, name):
         faces = np.vstack([sphere.faces, [[len(sphere.vertices), len(sphere.vertices) + 1, len(sphere.vertices) + 2]]])
     else:
         vertices, faces = getattr(meshes, name)() if name in ("torus", "sheet") else meshes.load(name)
-    field = DistanceField(vertices, faces, depth=4, sign="winding", device=device)
+    field = DistanceField(vertices, faces, depth=4, sign="winding", bvh=bvh, device=device)
     rng = np.random.default_rng(31)
     centre, side = domain_of(field)
     points = np.concatenate([centre + (rng.random((150, 3)) - 0.5) * 1.5 * side,
@@ -933,9 +935,10 @@ def test_a_planned_frame_allocates_the_octrees_scratch_once(device, monkeypatch,
 def test_a_builds_arrays_are_given_back_once_frames_keep_the_domain(device):
     """What only a BVH build uses (the sort, the radix tree's links and the slots' ranges and parents) is freed on
     the first frame that keeps the domain, and the stats count them apart; an object whose frames keep moving the
-    domain keeps them, allocating nothing per frame; and the field stays exact through both."""
+    domain keeps them, allocating nothing per frame; and the field stays exact through both. (The radix tree's: the
+    SAH tree, linked once and kept, has no links to give back.)"""
     vertices, faces = meshes.sphere()
-    field = DistanceField(vertices, faces, depth=4, device=device)
+    field = DistanceField(vertices, faces, depth=4, bvh="morton", device=device)
 
     def build_arrays():
         return {name: arr.ptr for name, arr in field._buffers._arrays.items() if name.startswith("bvh.build.")}
@@ -1381,7 +1384,8 @@ def test_tiny_and_huge_meshes_match_the_oracle(device, scale):
         assert np.array_equal((exact.distance < 0)[clear], (np.abs(winding) > 0.5)[clear])
 
 
-def test_shared_out_searches_read_no_cut_made_after_a_side_stream_was_forked(device, monkeypatch):
+@pytest.mark.parametrize("bvh", ["morton", "sah"])
+def test_shared_out_searches_read_no_cut_made_after_a_side_stream_was_forked(device, monkeypatch, bvh):
     """A BVH cut not yet made is launched on the frame's stream when first asked for, and a side stream waits only
     for what was queued before its fork: every cut a frame's searches read must be made before any fork. On an
     H200 (2026-11-29) the far corners' searches read a cut made after their fork and left 1,276 of 13,910 first-
@@ -1415,11 +1419,13 @@ def test_shared_out_searches_read_no_cut_made_after_a_side_stream_was_forked(dev
     monkeypatch.setattr(_distance.CornerField, "far_cells", 2)
     vertices, faces = meshes.load("spot")
     extent = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
-    field = DistanceField(vertices, faces, depth=5, device=device)
+    field = DistanceField(vertices, faces, depth=5, bvh=bvh, device=device)
     field._corners.split = SearchSplit(4, 4, 64)
     field.update(vertices * np.float32(1.01))
     field.update(vertices + np.float32(2.0 * extent))
-    assert len(made) >= 3  # the far corners' cut of the build and of the moved frame, and the long searches' cut
+    # the far corners' cut of the build, and the long searches' cut; and the far corners' cut of the moved frame,
+    # where the radix tree is linked again (the SAH tree is kept, with its cuts)
+    assert len(made) >= (3 if bvh == "morton" else 2)
     assert made_while_forked == []
 
 

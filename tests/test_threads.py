@@ -46,8 +46,8 @@ def test_chunks_on_threads_answer_as_one_launch(monkeypatch, name, options, far_
     monkeypatch.setattr(_threads, "MIN_CHUNK", 64)  # many chunks even for small fields
     monkeypatch.setattr(CornerField, "far_cells", far_cells)
     pools = []
-    executor = _threads._executor
-    monkeypatch.setattr(_threads, "_executor", lambda threads: pools.append(threads) or executor(threads))
+    executor = _threads.shared_pool
+    monkeypatch.setattr(_threads, "shared_pool", lambda threads: pools.append(threads) or executor(threads))
     vertices, faces = meshes.load(name)
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     points = np.random.default_rng(3).uniform(lo - 0.2 * (hi - lo), hi + 0.2 * (hi - lo), (3000, 3)).astype(np.float32)

@@ -16,7 +16,7 @@ import numpy as np
 import warp as wp
 
 from badf.server.adf import _distance as D
-from badf.server.adf._bvh import (_FAR_FIELD, _INV_FOUR_PI, LEAF_SIZE, BvhView, _far_field, _xyz, beats, leaf_moments,
+from badf.server.adf._bvh import (_INV_FOUR_PI, LEAF_SIZE, BvhView, _far_field, _xyz, beats, leaf_moments,
                                   leaf_triangle)
 from badf.server.adf._sign import WOUND_CANCELLED, WOUND_INSIDE, WOUND_OUTSIDE, wound_side
 from badf.server.adf._geometry import (box_distance_sq, load_vec4, solid_angle_checked, stack_float, stack_int,
@@ -242,7 +242,7 @@ def make_brick_winding(bits: int, registers: int):
                             p = wp.vec3(xs[k], ys[k], zs[k])
                             offset = _xyz(centre_radius) - p
                             dist = wp.length(offset)
-                            if dist > _FAR_FIELD * centre_radius[3]:
+                            if dist > bvh.far_field * centre_radius[3]:
                                 total[k] = total[k] + wp.dot(_xyz(normal_area), offset / dist) / (dist * dist)
                             else:
                                 angle, near_cancelled = solid_angle_checked(p, a, b, c)
@@ -256,7 +256,7 @@ def make_brick_winding(bits: int, registers: int):
                         if (mask >> k) & 1 != 0:
                             offset = _xyz(centre_radius) - wp.vec3(xs[k], ys[k], zs[k])
                             dist = wp.length(offset)
-                            if dist > _FAR_FIELD * centre_radius[3]:
+                            if dist > bvh.far_field * centre_radius[3]:
                                 total[k] = total[k] + _far_field(bvh, child, offset / dist, dist)
                             else:
                                 near = near | (1 << k)

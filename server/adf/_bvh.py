@@ -48,9 +48,8 @@ from badf.server.adf._geometry import (
     thread_fence,
     triangle_distance_sq,
 )
-from badf.server.adf._tolerances import BOX_SLACK, WINDING_FAR_FIELD
+from badf.server.adf._tolerances import BOX_SLACK, WINDING_FAR_FIELD, WINDING_FAR_FIELD_SAH
 
-_FAR_FIELD = wp.constant(WINDING_FAR_FIELD)
 _BOX_SLACK = wp.constant(BOX_SLACK)
 _INV_FOUR_PI = wp.constant(1.0 / (4.0 * math.pi))
 LEAF_SIZE = wp.constant(1)
@@ -96,6 +95,8 @@ class BvhView:
     # and unread, leaf k holding key k
     key_leaf: wp.array(dtype=wp.int32)
     keys_in_leaf_order: int
+    # node radii beyond which a winding-number walk takes a node's expansion (WINDING_FAR_FIELD, by the tree's shape)
+    far_field: float
     # Fast-winding-number moments of each internal node i, four vec4 (a one-element array when the sign
     # does not need them). A single triangle's are worked out from it where needed (`leaf_moments`): its
     # first moment about its centroid is zero, so storing them would only repeat the triangle.
@@ -122,6 +123,7 @@ class Bvh:
     def __init__(self, face_count: int, *, with_moments: bool, buffers: DeviceBuffers, shape: Shape | None = None):
         self.face_count = face_count
         self.shape = shape if face_count > 1 else None
+        self.far_field = WINDING_FAR_FIELD if self.shape is None else WINDING_FAR_FIELD_SAH
         self._shape_linked = False
         self.internal_count = face_count - 1
         self.code_levels, self.index_bits = code_layout(face_count)
@@ -261,6 +263,7 @@ class Bvh:
         v.leaf_key = self.leaf_key
         v.key_leaf = self.key_leaf
         v.keys_in_leaf_order = 1 if self.shape is None else 0
+        v.far_field = self.far_field
         v.node_moments = self.node_moments
         v.wide_planes, v.wide_child, v.wide_first = self.wide.planes, self.wide.child, self.wide.first
         return v
@@ -703,7 +706,7 @@ def _winding_number_function(careful: bool):
                     centre_radius, normal_area = leaf_moments(a, b, c)
                     offset = _xyz(centre_radius) - p
                     dist = wp.length(offset)
-                    if dist > _FAR_FIELD * centre_radius[3]:
+                    if dist > bvh.far_field * centre_radius[3]:
                         total += wp.dot(_xyz(normal_area), offset / dist) / (dist * dist)
                     elif wp.static(careful):
                         total += solid_angle_careful(p, a, b, c)
@@ -715,7 +718,7 @@ def _winding_number_function(careful: bool):
                     centre_radius = load_vec4(bvh.node_moments, 4 * child)
                     offset = _xyz(centre_radius) - p
                     dist = wp.length(offset)
-                    if dist > _FAR_FIELD * centre_radius[3]:
+                    if dist > bvh.far_field * centre_radius[3]:
                         total += _far_field(bvh, child, offset / dist, dist)
                     else:
                         nodes[count] = child

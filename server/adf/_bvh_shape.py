@@ -2,18 +2,20 @@
 
 The engine's other shape, Karras's radix tree over Morton codes (`Bvh.build`), is linked on the device in a few
 kernels, but splits where the codes' bits change, not where the triangles leave space between them. A tree whose
-boxes overlap less is opened less: on an H200 (2026-11-29, bench/probes/probe_sah_tree.py) the bunny's searches and
-winding numbers took 1.06 ms of a depth-7 update on this shape against 1.34 on Morton's, with the same distances
-(docs/engine.md, "The BVH's shape"). Only a frame's boxes change
+boxes overlap less is opened less: on an H200 (2026-12-01, `badf bench engine`) the distances of the armadillo's
+depth-7 update took 0.79 ms on this shape against 1.01 on Morton's, the bunny's 1.30 against 1.40, with the same
+answers (docs/engine.md, "The BVH's shape"). Only a frame's boxes change
 (the refit), so a shape made once from the first frame serves every frame after, and moving the domain keeps it.
 
 The tree is built top-down: each range of triangles is cut on the longest axis of its centroids' bounds, into 32
 even bins (a range of at most 32 triangles: one bin per triangle, in their order along the axis), and split between
-the two bins where the areas of the two sides' boxes, each times its triangle count, sum least. The builder is one
-Warp kernel run by one thread on the CPU back-end, whatever the object's device (Warp's CPU compiler, which every
-warp-lang wheel carries, compiles it once; the kernel cache keeps it). On this project's 2-core host (2026-12-01)
-it made the bunny's tree (69,451 triangles) in 80 to 85 ms and the armadillo's (86,482) in 105 to 110, where the
-same passes in numpy, every range of a level at once, took 520 to 600 and 640 to 720. The trees were the numpy
+the two bins where the areas of the two sides' boxes, each times its triangle count, sum least. The builder is a
+Warp kernel on the CPU back-end, whatever the object's device (Warp's CPU compiler, which every warp-lang wheel
+carries, compiles it once; the kernel cache keeps it): one thread splits the top of the tree, and the subtrees
+below it are built side by side by the CPU back-end's threads (`cpu_threads`), into the same tree. On this
+project's 2-core host (2026-12-01) it made the bunny's tree (69,451 triangles) in 59 to 64 ms with two threads and
+84 to 87 with one, the armadillo's (86,482) in 69 to 70 and 109 to 114, where the same passes in numpy, every range
+of a level at once, took 520 to 600 and 640 to 720. The trees were the numpy
 builder's node for node for the bunny, the armadillo and spot; fandisk's, homer's and the rocker arm's differed in
 48, 1 and 3 of their nodes, where two cuts cost the same to within rounding (the trees' summed areas agree to
 5e-6). Its arithmetic is float64, on coordinates scaled by a power of two to about unit size.
@@ -31,11 +33,17 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
+from badf.server.adf._threads import cpu_threads, shared_pool
+
 BINS = 32
 _BINS = wp.constant(BINS)
 # A leaf at most this deep: the searches' stacks hold a binary tree of 62 levels (_bvh.WIDE_STACK_DEPTH). A range
 # is split by area only where both sides can still be split evenly down to single triangles within it.
 MAX_DEPTH = 60
+# Below the top of the tree, subtrees are built side by side: those of at most n / (_SUBTREES_PER_THREAD threads)
+# triangles, or of _SHARED_GRAIN where that is more
+_SHARED_GRAIN = 1024
+_SUBTREES_PER_THREAD = 4
 
 
 class Shape(NamedTuple):
@@ -47,12 +55,29 @@ class Shape(NamedTuple):
     depth: int  # levels from the root to the deepest leaf
 
 
-def sah_shape(vertices: np.ndarray, faces: np.ndarray) -> Shape:
-    """The SAH tree of the triangles `vertices[faces]` (n >= 2)."""
+def resolve_shape(requested: str, on_cpu: bool) -> str:
+    """The shape `bvh="auto"` takes: SAH on the CPU back-end, Morton's on CUDA.
+
+    A CPU launch's cost is its total work, which an SAH tree's shorter walks cut: objects on either shape alternated
+    on a 2-core host (2026-12-01, bench/probes/probe_bvh_shapes.py, the bunny, the armadillo and spot at depths 5 and
+    7) updated 3 to 10% faster and answered exact queries 10 to 20% faster on it, and registered 5 to 12% slower at
+    depth 5 and about as fast at depth 7, where the first frame's searches win the shape's time back. On an H200 the
+    radix tree is linked on the device within the build, and the shape's 40 to 60 ms of host time take 150 to 500
+    frames to win back (docs/engine.md, "The BVH's shape")."""
+    if requested != "auto":
+        return requested
+    return "sah" if on_cpu else "morton"
+
+
+def sah_shape(vertices: np.ndarray, faces: np.ndarray, *, threads: int | None = None) -> Shape:
+    """The SAH tree of the triangles `vertices[faces]` (n >= 2). The top of the tree is split by one thread; the
+    subtrees below it are shared out over `threads` (default: the CPU back-end's, `cpu_threads`), which changes
+    nothing in the tree."""
     v = np.asarray(vertices, np.float64)
     # scaled by a power of two (exact) to about unit size, so that no area overflows or underflows float64
     scale = 2.0 ** -np.frexp(max(float(np.abs(v).max()), 1e-300))[1]
     n = len(faces)
+    threads = cpu_threads() if threads is None else threads
 
     def room(shape, dtype=wp.int32):
         return wp.empty(shape, dtype=dtype, device="cpu")
@@ -66,12 +91,34 @@ def sah_shape(vertices: np.ndarray, faces: np.ndarray) -> Shape:
     wp.launch(_triangle_boxes, dim=n, device="cpu", inputs=[
         wp.array(v * scale, dtype=wp.vec3d, device="cpu"),
         wp.array(np.asarray(faces, np.int32), dtype=wp.vec3i, device="cpu"), at])
-    left, right, first, last = room(n - 1), room(n - 1), room(n - 1), room(n - 1)
-    depth = wp.zeros(1, dtype=wp.int32, device="cpu")
-    wp.launch(_build, dim=1, device="cpu", inputs=[
-        at, spare, MAX_DEPTH, room(n), room((n, 4)), room(BINS), room((BINS, 4), wp.vec3d),
-        room(BINS, wp.float64), left, right, first, last, depth])
-    return Shape(at.face.numpy(), left.numpy(), right.numpy(), first.numpy(), last.numpy(), int(depth.numpy()[0]))
+    tree = [room(n - 1) for _ in range(4)]  # left, right, first, last
+    bin_of, stack = room(n), room((n, 4))
+    # ranges left for the subtrees' threads: at most one per two triangles, as each holds two or more
+    deferred, deferred_count = room((n // 2 + 1, 4)), wp.zeros(1, dtype=wp.int32, device="cpu")
+    grain = 0 if threads <= 1 else max(_SHARED_GRAIN, n // (_SUBTREES_PER_THREAD * threads))
+
+    def build(ranges: wp.array, first: int, last: int, grain: int) -> int:
+        """Split ranges[first:last] and their descendants, leaving those of at most `grain` triangles (0: none) to
+        `deferred`; returns the deepest leaf's depth."""
+        deepest = wp.zeros(1, dtype=wp.int32, device="cpu")
+        wp.launch(_build, dim=1, device="cpu", inputs=[
+            at, spare, MAX_DEPTH, ranges, first, last, grain, deferred, deferred_count, stack, bin_of,
+            room(BINS), room((BINS, 4), wp.vec3d), room(BINS, wp.float64), *tree, deepest])
+        return int(deepest.numpy()[0])
+
+    root = wp.array(np.array([[0, n, 0, 0]], np.int32), dtype=wp.int32, device="cpu")
+    depth = build(root, 0, 1, grain)
+    left_over = int(deferred_count.numpy()[0])
+    if left_over:
+        # groups of deferred ranges of about equal triangle counts, a launch each, side by side from the pool
+        counts = np.cumsum(deferred.numpy()[:left_over, 1])
+        groups = min(left_over, _SUBTREES_PER_THREAD * threads)
+        bounds = np.unique(np.searchsorted(counts, counts[-1] * np.arange(1, groups) / groups, side="right"))
+        edges = [0, *[int(e) for e in bounds if 0 < e < left_over], left_over]
+        pool = shared_pool(threads)
+        futures = [pool.submit(build, deferred, edges[j], edges[j + 1], 0) for j in range(len(edges) - 1)]
+        depth = max([depth, *(future.result() for future in futures)])
+    return Shape(at.face.numpy(), *(array.numpy() for array in tree), depth)
 
 
 @wp.struct
@@ -213,49 +260,63 @@ def _split(at: _Triangles, spare: _Triangles, bin_of: wp.array(dtype=wp.int32), 
 
 
 @wp.kernel(enable_backward=False)
-def _build(at: _Triangles, spare: _Triangles, max_depth: int, bin_of: wp.array(dtype=wp.int32),
-           stack: wp.array2d(dtype=wp.int32), in_bin: wp.array(dtype=wp.int32), boxes: wp.array2d(dtype=wp.vec3d),
-           along_of: wp.array(dtype=wp.float64), left: wp.array(dtype=wp.int32), right: wp.array(dtype=wp.int32),
-           first: wp.array(dtype=wp.int32), last: wp.array(dtype=wp.int32), deepest: wp.array(dtype=wp.int32)):
-    """One thread: the ranges still to split on a stack, each (begin, count, depth, and how many times the path from
-    the root to it turns right). The internal nodes before a node in preorder are its ancestors and those of the
-    subtrees left of its path, which hold its first leaf's count of leaves in as many subtrees as right turns: its
-    id is begin + depth - turns."""
+def _build(at: _Triangles, spare: _Triangles, max_depth: int, ranges: wp.array2d(dtype=wp.int32), first_range: int,
+           last_range: int, grain: int, deferred: wp.array2d(dtype=wp.int32), deferred_count: wp.array(dtype=wp.int32),
+           stack: wp.array2d(dtype=wp.int32), bin_of: wp.array(dtype=wp.int32), in_bin: wp.array(dtype=wp.int32),
+           boxes: wp.array2d(dtype=wp.vec3d), along_of: wp.array(dtype=wp.float64), left: wp.array(dtype=wp.int32),
+           right: wp.array(dtype=wp.int32), first: wp.array(dtype=wp.int32), last: wp.array(dtype=wp.int32),
+           deepest: wp.array(dtype=wp.int32)):
+    """One thread: each of the ranges first_range..last_range - 1 split to single triangles, a range and the ones
+    still to split on a stack, each (begin, count, depth, and how many times the path from the root to it turns
+    right). With a grain, a range of at most that many triangles is left in `deferred` instead. A range's stack
+    lies in the stack's rows from its begin on: a subtree of c triangles holds at most c - 1 ranges at once, so
+    the threads building disjoint ranges keep apart.
+
+    Nodes are numbered in preorder. The internal nodes before a node are its ancestors and those of the subtrees
+    left of its path, which hold its first leaf's count of leaves in as many subtrees as right turns: its id is
+    begin + depth - turns, wherever it is built."""
     n = at.face.shape[0]
-    stack[0, 0] = 0
-    stack[0, 1] = n
-    stack[0, 2] = 0
-    stack[0, 3] = 0
-    top = int(1)
-    while top > 0:
-        top -= 1
-        begin = stack[top, 0]
-        count = stack[top, 1]
-        depth = stack[top, 2]
-        turns = stack[top, 3]
-        node = begin + depth - turns
-        first[node] = begin
-        last[node] = begin + count - 1
-        deepest[0] = wp.max(deepest[0], depth + 1)
-        split = _split(at, spare, bin_of, in_bin, boxes, along_of, begin, count, depth, max_depth)
-        # the right side is pushed first, so that the left is split next
-        for side in range(2):
-            side_begin = begin + split
-            side_count = count - split
-            side_turns = turns + 1
-            if side == 1:
-                side_begin = begin
-                side_count = split
-                side_turns = turns
-            child = n - 1 + side_begin
-            if side_count > 1:
-                child = side_begin + depth + 1 - side_turns
-                stack[top, 0] = side_begin
-                stack[top, 1] = side_count
-                stack[top, 2] = depth + 1
-                stack[top, 3] = side_turns
-                top += 1
-            if side == 0:
-                right[node] = child
-            else:
-                left[node] = child
+    for r in range(first_range, last_range):
+        base = ranges[r, 0]
+        for k in range(4):
+            stack[base, k] = ranges[r, k]
+        top = int(1)
+        while top > 0:
+            top -= 1
+            begin = stack[base + top, 0]
+            count = stack[base + top, 1]
+            depth = stack[base + top, 2]
+            turns = stack[base + top, 3]
+            if count <= grain:
+                slot = wp.atomic_add(deferred_count, 0, 1)
+                deferred[slot, 0] = begin
+                deferred[slot, 1] = count
+                deferred[slot, 2] = depth
+                deferred[slot, 3] = turns
+                continue
+            node = begin + depth - turns
+            first[node] = begin
+            last[node] = begin + count - 1
+            deepest[0] = wp.max(deepest[0], depth + 1)
+            split = _split(at, spare, bin_of, in_bin, boxes, along_of, begin, count, depth, max_depth)
+            # the right side is pushed first, so that the left is split next
+            for side in range(2):
+                side_begin = begin + split
+                side_count = count - split
+                side_turns = turns + 1
+                if side == 1:
+                    side_begin = begin
+                    side_count = split
+                    side_turns = turns
+                child = n - 1 + side_begin
+                if side_count > 1:
+                    child = side_begin + depth + 1 - side_turns
+                    stack[base + top, 0] = side_begin
+                    stack[base + top, 1] = side_count
+                    stack[base + top, 2] = depth + 1
+                    stack[base + top, 3] = side_turns
+                    top += 1
+                if side == 0:
+                    right[node] = child
+                else:
+                    left[node] = child

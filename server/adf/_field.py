@@ -16,7 +16,7 @@ import warp as wp
 
 from badf.server.adf._buffers import DeviceBuffers, HostStaged, SideStream
 from badf.server.adf._bvh import Bvh
-from badf.server.adf._bvh_shape import Shape, sah_shape
+from badf.server.adf._bvh_shape import Shape, resolve_shape, sah_shape
 from badf.server.adf._clock import StageClock
 from badf.server.adf._distance import (
     OUT_CLOSEST,
@@ -288,9 +288,10 @@ class DistanceField:
             only where the box needs it; ADF queries outside the box are answered exactly, as beyond the
             domain. The domain still fits the mesh, so depth means the same cells.
         bvh: the shape of the BVH the searches and winding numbers walk: "morton" (Karras's radix tree over the
-            triangles' Morton codes, the paper's, linked on the device) or "sah" (split by the surface area
-            heuristic, made once on the host at registration and kept, its boxes refit every frame): its
-            frames are faster, for a registration that takes longer (docs/engine.md, "The BVH's shape").
+            triangles' Morton codes, the paper's, linked on the device), "sah" (split by the surface area
+            heuristic, made once on the host at registration and kept, its boxes refit every frame: faster
+            frames and exact queries, for a registration that takes longer), or "auto" (sah on the CPU
+            back-end, where it pays within the first frame; morton on CUDA). docs/engine.md, "The BVH's shape".
         device: "cpu", "cuda", "cuda:N", or None for the first GPU if there is one, else the CPU.
 
     Raises:
@@ -309,7 +310,7 @@ class DistanceField:
         refine: Literal["surface", "centroid"] = "surface",
         halo: int = 1,
         region=None,
-        bvh: Literal["morton", "sah"] = "morton",
+        bvh: Literal["auto", "morton", "sah"] = "auto",
         device: str | None = None,
     ):
         v = as_vertices(vertices)
@@ -321,8 +322,9 @@ class DistanceField:
         self._refine = check_choice(refine, "refine", REFINEMENTS)
         self._halo = check_halo(halo)
         self._region = check_region(region)
-        self._bvh_shape = check_choice(bvh, "bvh", BVH_SHAPES)
+        self._bvh_requested = check_choice(bvh, "bvh", BVH_SHAPES)
         self._device = _resolve_device(device)
+        self._bvh_shape = resolve_shape(self._bvh_requested, self._device.is_cpu)
         if self._device.is_cpu:
             cpu_threads()  # a bad BADF_CPU_THREADS, refused before anything is built
 
@@ -631,6 +633,7 @@ class DistanceField:
             "halo": self._halo,
             "region": None if self._region is None else self._region.tolist(),
             "bvh": self._bvh_shape,
+            "bvh_requested": self._bvh_requested,
             "failed_update": self._failed_update,
             "orientation_flipped": self._flipped,
             "parts_face_both_ways": self._parts_disagree,

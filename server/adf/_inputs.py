@@ -18,7 +18,7 @@ MIN_EXTENT = 1.0e-40
 QUERY_MODES: tuple[str, ...] = ("adf", "exact")
 QUERY_OUTPUTS: tuple[str, ...] = ("distance", "closest_point", "normal", "face")
 REFINEMENTS: tuple[str, ...] = ("surface", "centroid")
-BVH_SHAPES: tuple[str, ...] = ("morton", "sah")
+BVH_SHAPES: tuple[str, ...] = ("auto", "morton", "sah")
 
 
 class InvalidInputError(ValueError):

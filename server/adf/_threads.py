@@ -56,7 +56,8 @@ def _forget_pool() -> None:
 os.register_at_fork(after_in_child=_forget_pool)
 
 
-def _executor(threads: int) -> concurrent.futures.ThreadPoolExecutor:
+def shared_pool(threads: int) -> concurrent.futures.ThreadPoolExecutor:
+    """The process's pool of `threads` threads for CPU launches side by side (made again for another count)."""
     global _pool, _pool_threads
     with _pool_lock:
         if _pool is None or _pool_threads != threads:
@@ -121,7 +122,7 @@ def launch_per_item(kernel, dim: int, inputs: list, outputs: list, *, sliced: tu
         chunk_counts[MAX_CHUNKS] = 0
         idle[1] = counts[MAX_CHUNKS : MAX_CHUNKS + 1]
     wp.launch(kernel, dim=idle_dim, inputs=idle[:split], outputs=idle[split:], device=device, **launch_options)
-    pool = _executor(threads)
+    pool = shared_pool(threads)
     futures = [pool.submit(wp.launch, kernel, dim=chunk_dim, inputs=chunk[:split], outputs=chunk[split:],
                            device=device, **launch_options) for chunk_dim, chunk in launches]
     for future in futures:
