@@ -3,7 +3,14 @@
 #   bash bench/gpu_session.sh [tests] [engine] [signs] [split] [far] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] [shapes] ...
 # Expects warp-lang and the wheels unpacked by ../shared/gpu/setup.sh (sourced before), the shared meshes
 # copied into $BADF_SHARED_DATA (default .gpudata/), and writes logs and JSON under $OUT.
+# The SAH shape's builder runs on Warp's CPU back-end, whose compiler ../shared/gpu/pack.sh leaves out: carry it as
+# .gpu/clang.tar.xz, made here with
+#   tar cf - -C .venv/lib/python3.11/site-packages warp/bin/warp-clang.so | xz -6 -T0 > .gpu/clang.tar.xz
+# (about 20 MB, so in a call of its own beside the two of warp-lang); it is unpacked into /tmp/site below.
 set -uo pipefail
+if [ -f .gpu/clang.tar.xz ] && [ ! -f /tmp/site/warp/bin/warp-clang.so ]; then
+  tar xJf .gpu/clang.tar.xz -C /tmp/site || echo "unpacking Warp's CPU compiler failed"
+fi
 out="${OUT:-$PWD/bench-out}"
 mkdir -p "$out"
 export BADF_SHARED_DATA="${BADF_SHARED_DATA:-$PWD/.gpudata}"

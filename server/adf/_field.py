@@ -291,7 +291,7 @@ class DistanceField:
             triangles' Morton codes, the paper's, linked on the device), "sah" (split by the surface area
             heuristic, made once on the host at registration and kept, its boxes refit every frame: faster
             frames and exact queries, for a registration that takes longer), or "auto" (sah on the CPU
-            back-end, where it pays within the first frame; morton on CUDA). docs/engine.md, "The BVH's shape".
+            back-end, where it pays within a few frames; morton on CUDA). docs/engine.md, "The BVH's shape".
         device: "cpu", "cuda", "cuda:N", or None for the first GPU if there is one, else the CPU.
 
     Raises:
