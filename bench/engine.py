@@ -482,7 +482,7 @@ def measure_block_dims(vertices, faces, *, depth: int, device: str, repeat: int,
 
 
 def measure_register_caps(vertices, faces, *, depth: int, device: str, repeat: int,
-                          caps=(32, 40, 48, 64, 96)) -> dict:
+                          caps=(32, 40, 48, 64, 96, 128, 255)) -> dict:
     """Registers and local memory per thread of the corner searches and the costly corner-sign kernel (the
     winding numbers where the sign is by winding number), each compiled with a cap on registers per thread
     while the other stays as the engine compiles it, and the device time of both and of the distance stage

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One call on a GPU machine (the device tool): set up, check on CUDA, then time.
-#   bash bench/gpu_session.sh [tests] [engine] [signs] [split] [far] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] [shapes] ...
+#   bash bench/gpu_session.sh [tests] [engine] [signs] [split] [far] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] [shapes] [binned] [slabs] ...
 # Expects warp-lang and the wheels unpacked by ../shared/gpu/setup.sh (sourced before), the shared meshes
 # copied into $BADF_SHARED_DATA (default .gpudata/), and writes logs and JSON under $OUT.
 # The SAH shape's builder runs on Warp's CPU back-end, whose compiler ../shared/gpu/pack.sh leaves out: carry it as
@@ -66,6 +66,18 @@ for step in "$@"; do
       # 8 client processes x 4 objects on one worker on cuda:0 for 60 s; answers, counters, RSS and GPU memory
       python3 -m badf.bench.soak --device cuda:0 --seconds 60 --out "$out/soak-gpu.json" 2>&1 \
         | tee "$out/soak.log" | grep -v ' badf INFO ' ;;
+    binned)
+      # the corners near the surface answered from bins of triangles, against the engine's walks (a probe)
+      for mesh in stanford-bunny armadillo-86k rocker-arm; do
+        python3 bench/probes/probe_binned_near.py "$BADF_SHARED_DATA/$mesh.npz" cuda:0 --out "$out/binned-$mesh.json" \
+          2>&1 | grep -v '^Module' | tee "$out/binned-$mesh.log" | tail -9
+      done ;;
+    slabs)
+      # the corner walks with a slab beside each 4-wide node's box, against boxes alone (a probe)
+      for mesh in stanford-bunny armadillo-86k rocker-arm; do
+        python3 bench/probes/probe_slabs.py "$BADF_SHARED_DATA/$mesh.npz" cuda:0 --out "$out/slabs-$mesh.json" \
+          2>&1 | grep -v '^Module' | tee "$out/slabs-$mesh.log" | tail -6
+      done ;;
     shapes)
       # the SAH shape's host time (one thread and all), its CUDA tests, then the engine on either shape, alternated:
       # the bunny's engine bench on each, and objects on either alternated (about 5 minutes from a cold start)
