@@ -22,6 +22,7 @@ from badf.server.adf._bvh import (
     leaf_distance_sq,
     nearest_leaf_past_ties,
     beats,
+    nearest_leaf_budgeted,
     nearest_leaf_wide,
     winding_number,
 )
@@ -1540,7 +1541,7 @@ def _budgeted_corner_searches(bvh: BvhView, points: wp.array(dtype=wp.vec3), see
                               budget: int, finished: wp.array(dtype=wp.int32)):
     i = wp.tid()
     p = points[i]
-    leaf, d_sq, done = nearest_leaf_wide(bvh, p, seeds[i], leaf_distance_sq(bvh, seeds[i], p), budget)
+    leaf, d_sq, done = nearest_leaf_budgeted(bvh, p, seeds[i], leaf_distance_sq(bvh, seeds[i], p), budget)
     finished[i] = wp.where(done, 1, 0)
 
 
@@ -1565,6 +1566,53 @@ def test_a_part_far_from_the_rest_leaves_the_bvh_pruning_near_the_rest(device):
     wp.launch(_budgeted_corner_searches, dim=len(points), inputs=[field._bvh.view(), local, seeds, 128],
               outputs=[finished], device=device)
     assert finished.numpy().all(), f"{np.count_nonzero(finished.numpy() == 0)} of 200 searches took over 128 visits"
+
+
+@wp.kernel(module="unique", module_options=EXACT_ROUNDING)  # rounded as the engine's searches are
+def _whole_and_budgeted_searches(bvh: BvhView, points: wp.array(dtype=wp.vec3), seeds: wp.array(dtype=wp.int32),
+                                 budget: int, leaves: wp.array2d(dtype=wp.int32), squares: wp.array2d(dtype=wp.float32),
+                                 finished: wp.array(dtype=wp.int32)):
+    """Column 0: the whole walk; column 1: the budgeted walk with `budget`, and whether it finished."""
+    i = wp.tid()
+    p = points[i]
+    seed_sq = leaf_distance_sq(bvh, seeds[i], p)
+    leaf, d_sq, done = nearest_leaf_wide(bvh, p, seeds[i], seed_sq, 4)  # a whole walk does not read its budget
+    leaves[i, 0] = leaf
+    squares[i, 0] = d_sq
+    leaf, d_sq, done = nearest_leaf_budgeted(bvh, p, seeds[i], seed_sq, budget)
+    leaves[i, 1] = leaf
+    squares[i, 1] = d_sq
+    finished[i] = wp.where(done, 1, 0)
+
+
+def test_the_budgeted_walk_stops_at_its_budget_and_the_whole_walk_does_not(device):
+    """The corner searches walk whole unless long walks are handed on (SearchSplit), and only then count their
+    visits against a budget: a budgeted walk that finishes gives the whole walk's (leaf, value), bit for bit, and
+    one cut short is reported so (its answer an upper bound); a whole walk runs to its end whatever budget it is
+    handed."""
+    vertices, faces = meshes.load("spot")
+    field = DistanceField(vertices, faces, depth=3, sign="none", device=device)
+    rng = np.random.default_rng(5)
+    lo, hi = vertices.min(0), vertices.max(0)
+    points = rng.uniform(lo - 0.3 * (hi - lo), hi + 0.3 * (hi - lo), (500, 3))
+    local = wp.array(field._domain.to_local(points), dtype=wp.vec3, device=device)
+    seeds = wp.array(rng.integers(0, len(faces), len(points)), dtype=wp.int32, device=device)
+    truth = oracle.nearest(points, vertices, faces).distance
+    for budget in (4, 64, UNLIMITED_VISITS):
+        leaves = wp.zeros((len(points), 2), dtype=wp.int32, device=device)
+        squares = wp.zeros((len(points), 2), dtype=wp.float32, device=device)
+        finished = wp.zeros(len(points), dtype=wp.int32, device=device)
+        wp.launch(_whole_and_budgeted_searches, dim=len(points), inputs=[field._bvh.view(), local, seeds, budget],
+                  outputs=[leaves, squares, finished], device=device)
+        leaves, squares, done = leaves.numpy(), squares.numpy(), finished.numpy() == 1
+        whole = np.sqrt(squares[:, 0].astype(np.float64)) / field._domain.scale
+        assert np.allclose(whole, truth, rtol=1e-5, atol=1e-6 * np.linalg.norm(hi - lo))
+        assert np.array_equal(leaves[done, 0], leaves[done, 1]) and np.array_equal(squares[done, 0], squares[done, 1])
+        assert np.all(squares[~done, 1] >= squares[~done, 0])
+        if budget == 4:
+            assert (~done).sum() > len(points) // 2, f"{(~done).sum()} of {len(points)} walks cut at 4 visits"
+        if budget == UNLIMITED_VISITS:
+            assert done.all()
 
 
 @wp.kernel(module="unique", module_options=EXACT_ROUNDING)  # rounded as the engine's searches are

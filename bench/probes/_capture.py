@@ -32,7 +32,7 @@ def captured_search(path: str, device: str):
     launch = wp.launch
 
     def spy(kernel, *args, **kwargs):
-        if kernel is _distance.corner_searches:
+        if kernel in (_distance.corner_searches, _distance.corner_searches_budgeted):
             captured["inputs"] = list(kwargs["inputs"])
         return launch(kernel, *args, **kwargs)
 

@@ -30,7 +30,7 @@ def persistent(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.i
         p = D._lattice_point(corner_keys[i], origin, cell)
         seed = D.coherent_seed(bvh, p, depth, previous_keys, previous_face, previous_count, previous_capacity,
                                previous_origin, previous_inv_cell)
-        best_leaf, best_sq, finished = D._nearest_with_band(bvh, p, seed, band, budget)
+        best_leaf, best_sq, finished = D._nearest_with_band_budgeted(bvh, p, seed, band, budget)
         distance[i] = wp.sqrt(best_sq)
         nearest[i] = best_leaf
         if not finished:
@@ -71,11 +71,11 @@ unseeded = wp.zeros(1, dtype=int, device=DEV)
 sms = wp.get_device(DEV).sm_count if DEV != "cpu" else 1
 UNL = 2**31 - 1
 cases = [("one per corner", D.corner_searches, cap, UNL, 6, False),
-         ("one per corner", D.corner_searches, cap, 128, 6, False)]
+         ("one per corner", D.corner_searches_budgeted, cap, 128, 6, False)]
 for budget in (32, 64, 128):
     for levels in (4, 6, 8):
         cases.append(("persistent 2048/SM, pair split", persistent, sms * 2048, budget, levels, True))
-        cases.append(("one per corner, pair split", D.corner_searches, cap, budget, levels, True))
+        cases.append(("one per corner, pair split", D.corner_searches_budgeted, cap, budget, levels, True))
 counter2 = wp.zeros(1, dtype=int, device=DEV)
 for name, kernel, threads, budget, levels, pairs in cases:
     cut = field._bvh.cut(levels)

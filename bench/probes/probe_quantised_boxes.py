@@ -72,7 +72,7 @@ unseeded = wp.zeros(1, dtype=int, device=args.device)
 
 def search(budget: int) -> None:
     long_count.zero_()
-    wp.launch(D.corner_searches, dim=capacity, inputs=list(inputs) + [budget, 0, unseeded, unseeded],
+    wp.launch(D.corner_searches_budgeted, dim=capacity, inputs=list(inputs) + [budget, 0, unseeded, unseeded],
               outputs=[distance, nearest, long_count, long_corner, long_start, long_best], device=args.device,
               block_dim=D.SEARCH_BLOCK_DIM)
 

@@ -60,7 +60,7 @@ def probe(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int32)
                                previous_origin, previous_inv_cell)
     else:
         seed = spatial_seed(bvh, p, origin, inv_side)
-    best_leaf, best_sq, finished = D._nearest_with_band(bvh, p, seed, band, budget)
+    best_leaf, best_sq, finished = D._nearest_with_band_budgeted(bvh, p, seed, band, budget)
     out_d[i] = wp.sqrt(best_sq)
     t_end[i] = gtimer()
     t_start[i] = t0

@@ -31,7 +31,7 @@ def searches(corner_keys: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int
     b = budget
     if far[i] != 0:
         b = 0
-    best_leaf, best_sq, finished = D._nearest_with_band(bvh, p, seed, band, b)
+    best_leaf, best_sq, finished = D._nearest_with_band_budgeted(bvh, p, seed, band, b)
     distance[i] = wp.sqrt(best_sq)
     nearest[i] = best_leaf
     if not finished:

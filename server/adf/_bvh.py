@@ -497,8 +497,8 @@ def entry_distances_sq(bvh: BvhView, p: wp.vec3, node: int) -> wp.vec4:
     return d
 
 
-def _wide_searches(past_tied_boxes: bool):
-    """The nearest-leaf search over the 4-wide view, built two ways. With `past_tied_boxes` a box exactly as far
+def _wide_searches(past_tied_boxes: bool, budgeted: bool = False):
+    """The nearest-leaf search over the 4-wide view, built three ways. With `past_tied_boxes` a box exactly as far
     as the best so far is passed over when its first leaf comes after the best's, since none of its leaves can win
     the tie (`beats`). Seen from far enough (1e8 sizes away) every face ties in float32, and without it a search
     visits every face: 0.8 ms a point for 20K faces on the CPU, 3 us with it (fifteenth outside check). Passing
@@ -509,6 +509,10 @@ def _wide_searches(past_tied_boxes: bool):
     operations, so that holds here too. The corner searches, which never meet such ties in bulk and never look
     from that far, take the search without either: the extra test made the binary walk 15% slower on the H100
     (2026-11-23); the queries take the search with both (on the 4-wide view since 2026-11-28).
+
+    Only a `budgeted` walk reads its `budget` (and counts its visits): the corner searches that hand their long
+    walks on to subtree searches (`SearchSplit`). Every other walk runs to its end, and without the count and its
+    test the engine's corner-search kernel took 2 to 4% less time on an H200 (2026-12-02, probe_search_variants).
     """
 
     def leaf_sq(bvh: BvhView, leaf: int, p: wp.vec3) -> float:
@@ -534,7 +538,8 @@ def _wide_searches(past_tied_boxes: bool):
 
     def nearest_under(bvh: BvhView, p: wp.vec3, root: int, best_leaf: int, best_sq: float, budget: int):
         """Nearest leaf under 4-wide node `root` of those that beat (best_sq, best_leaf) (see `beats`), in at
-        most `budget` binary node visits (a 4-wide visit counts two): (best_leaf, best_sq, finished). It opens
+        most `budget` binary node visits (a 4-wide visit counts two) where `budgeted`, however many it takes
+        otherwise: (best_leaf, best_sq, finished). It opens
         every box that may hold a better leaf, so it finds the least (value, leaf) whatever the order it walks
         in. Triangles are tested first, then the nodes pushed farthest first, so that the nearest is walked next.
         A node pushed before the best came to tie with its box is still opened (its entries are tested against
@@ -549,9 +554,10 @@ def _wide_searches(past_tied_boxes: bool):
             top -= 1
             if bounds[top] > best_sq:
                 continue
-            if visits >= budget:
-                return best_leaf, best_sq, False
-            visits += 2
+            if wp.static(budgeted):
+                if visits >= budget:
+                    return best_leaf, best_sq, False
+                visits += 2
             node = nodes[top]
             d = entry_distances_sq(bvh, p, node)
             child = wp.vec4i()
@@ -582,7 +588,7 @@ def _wide_searches(past_tied_boxes: bool):
                     child[far] = NO_CHILD
         return best_leaf, best_sq, True
 
-    suffix = "_past_ties" if past_tied_boxes else ""
+    suffix = ("_past_ties" if past_tied_boxes else "") + ("_budgeted" if budgeted else "")
     nearest_under.__name__ = nearest_under.__qualname__ = "nearest_under" + suffix
     nearest_under = wp.func(nearest_under, module="unique")
 
@@ -600,8 +606,10 @@ def _wide_searches(past_tied_boxes: bool):
     return nearest_under, wp.func(nearest_leaf_wide, module="unique")
 
 
-# the corner searches' and the queries' (see `_wide_searches` for why they differ)
+# the corner searches' (whole, or budgeted where long walks are handed on) and the queries' (see `_wide_searches`
+# for why they differ)
 _nearest_under, nearest_leaf_wide = _wide_searches(past_tied_boxes=False)
+_, nearest_leaf_budgeted = _wide_searches(past_tied_boxes=False, budgeted=True)
 _, nearest_leaf_past_ties = _wide_searches(past_tied_boxes=True)
 
 

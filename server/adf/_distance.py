@@ -21,6 +21,7 @@ from badf.server.adf._bvh import (
     leaf_distance_sq,
     leaf_triangle,
     nearest_in_entry,
+    nearest_leaf_budgeted,
     nearest_leaf_past_ties,
     nearest_leaf_wide,
     spatial_seed,
@@ -250,7 +251,7 @@ class CornerField:
         # shared out over the CPU's cores where each search writes only its own corner's slots (no long list); the
         # per-corner arrays: the keys, the seeds where far corners are listed, the distances and leaves
         launch_per_item(
-            corner_searches,
+            corner_searches_budgeted if splitting else corner_searches,
             capacity,
             inputs=[*seeding, split.budget if splitting else UNLIMITED_VISITS, 1 if far_cells > 0 else 0, seeds,
                     far_count if far_cells > 0 else long_count],
@@ -485,6 +486,7 @@ def _banded_search(nearest_leaf, leaf_distance_sq):
 
 # the corner searches' and the queries' (which pass over tied boxes: see `_wide_searches`), both over the 4-wide view
 _nearest_with_band = _banded_search(nearest_leaf_wide, leaf_distance_sq)
+_nearest_with_band_budgeted = _banded_search(nearest_leaf_budgeted, leaf_distance_sq)
 _nearest_past_ties = _banded_search(nearest_leaf_past_ties, leaf_distance_held_to_box_sq)
 
 
@@ -789,63 +791,76 @@ def _write_answer(i: int, best: int, best_sq: float, seed: int, band: float, dis
         nearest[i] = -1 - seed
 
 
-@wp.kernel(enable_backward=False, module="unique", cuda_max_registers=SEARCH_MAX_REGISTERS,
-           module_options=EXACT_ROUNDING)
-def corner_searches(
-    corner_keys: wp.array(dtype=wp.int64),
-    count: wp.array(dtype=wp.int32),
-    capacity: int,
-    origin: wp.vec3,
-    cell: float,
-    inv_side: float,
-    depth: int,
-    bvh: BvhView,
-    band: float,
-    coherent: int,
-    previous_keys: wp.array(dtype=wp.int32),
-    previous_face: wp.array(dtype=wp.int32),
-    previous_count: wp.array(dtype=wp.int32),
-    previous_capacity: int,
-    previous_lattice: wp.array(dtype=wp.vec4),
-    budget: int,
-    seeded: int,
-    seeds: wp.array(dtype=wp.int32),
-    seeded_far_count: wp.array(dtype=wp.int32),
-    distance: wp.array(dtype=wp.float32),
-    nearest: wp.array(dtype=wp.int32),
-    long_count: wp.array(dtype=wp.int32),
-    long_corner: wp.array(dtype=wp.int32),
-    long_start: wp.array(dtype=wp.int64),
-    long_best: wp.array(dtype=wp.int64),
-):
-    """Unsigned distance and nearest leaf of each corner; -1 - seed where nothing lies within the band.
-    A search that needs more than `budget` node visits is listed as long, with the bound it reached.
-    With `seeded`, each corner's seed leaf comes from `seeds` (list_far_corners), and a corner whose seed
-    is negative was found far and is searched by subtree, unless the far list was dropped.
+def _corner_searches(budgeted: bool) -> wp.Kernel:
+    """The corner searches' kernel: every walk run to its end, or (`budgeted`) walks cut at `budget` node visits
+    and listed as long, for the subtree searches that finish them (`SearchSplit`)."""
+    nearest_with_band = _nearest_with_band_budgeted if budgeted else _nearest_with_band
 
-    The sign is a separate kernel (sign_kernel), so this one carries neither the winding number's stack
-    nor its registers. A combined kernel proved fragile: with an experiment's extra code in the search it
-    ran 4x slower on an H200 (2026-11-21). Apart, with the triangle box test, the bunny's corner stage
-    took 3.13 ms there, against 3.35 ms for the combined kernel earlier that day.
-    """
-    i = wp.tid()
-    if i >= wp.min(count[0], capacity):
-        return
-    p = _lattice_point(corner_keys[i], origin, cell)
-    seed = int(-1)
-    if seeded != 0:
-        seed = seeds[i]
-        if seed < 0:
-            if seeded_far_count[0] >= 0:
-                return  # a far corner, searched by subtree
-            seed = -2 - seed
-    else:
-        seed = _corner_seed(bvh, p, origin, inv_side, depth, coherent, previous_keys, previous_face, previous_count,
-                            previous_capacity, previous_lattice)
-    best_leaf, best_sq, finished = _nearest_with_band(bvh, p, seed, band, budget)
-    _write_answer(i, best_leaf, best_sq, seed, band, distance, nearest)
-    if not finished:
-        list_long_search(i, best_sq, best_leaf, capacity, long_count, long_corner, long_start, long_best)
+    def corner_searches(
+        corner_keys: wp.array(dtype=wp.int64),
+        count: wp.array(dtype=wp.int32),
+        capacity: int,
+        origin: wp.vec3,
+        cell: float,
+        inv_side: float,
+        depth: int,
+        bvh: BvhView,
+        band: float,
+        coherent: int,
+        previous_keys: wp.array(dtype=wp.int32),
+        previous_face: wp.array(dtype=wp.int32),
+        previous_count: wp.array(dtype=wp.int32),
+        previous_capacity: int,
+        previous_lattice: wp.array(dtype=wp.vec4),
+        budget: int,
+        seeded: int,
+        seeds: wp.array(dtype=wp.int32),
+        seeded_far_count: wp.array(dtype=wp.int32),
+        distance: wp.array(dtype=wp.float32),
+        nearest: wp.array(dtype=wp.int32),
+        long_count: wp.array(dtype=wp.int32),
+        long_corner: wp.array(dtype=wp.int32),
+        long_start: wp.array(dtype=wp.int64),
+        long_best: wp.array(dtype=wp.int64),
+    ):
+        """Unsigned distance and nearest leaf of each corner; -1 - seed where nothing lies within the band.
+        Where `budgeted`, a search that needs more than `budget` node visits is listed as long, with the bound it
+        reached; otherwise `budget` and the long list are not read.
+        With `seeded`, each corner's seed leaf comes from `seeds` (list_far_corners), and a corner whose seed
+        is negative was found far and is searched by subtree, unless the far list was dropped.
+
+        The sign is a separate kernel (sign_kernel), so this one carries neither the winding number's stack
+        nor its registers. A combined kernel proved fragile: with an experiment's extra code in the search it
+        ran 4x slower on an H200 (2026-11-21). Apart, with the triangle box test, the bunny's corner stage
+        took 3.13 ms there, against 3.35 ms for the combined kernel earlier that day.
+        """
+        i = wp.tid()
+        if i >= wp.min(count[0], capacity):
+            return
+        p = _lattice_point(corner_keys[i], origin, cell)
+        seed = int(-1)
+        if seeded != 0:
+            seed = seeds[i]
+            if seed < 0:
+                if seeded_far_count[0] >= 0:
+                    return  # a far corner, searched by subtree
+                seed = -2 - seed
+        else:
+            seed = _corner_seed(bvh, p, origin, inv_side, depth, coherent, previous_keys, previous_face, previous_count,
+                                previous_capacity, previous_lattice)
+        best_leaf, best_sq, finished = nearest_with_band(bvh, p, seed, band, budget)
+        _write_answer(i, best_leaf, best_sq, seed, band, distance, nearest)
+        if wp.static(budgeted):
+            if not finished:
+                list_long_search(i, best_sq, best_leaf, capacity, long_count, long_corner, long_start, long_best)
+
+    corner_searches.__name__ = corner_searches.__qualname__ = "corner_searches" + ("_budgeted" if budgeted else "")
+    return wp.kernel(corner_searches, enable_backward=False, module="unique", cuda_max_registers=SEARCH_MAX_REGISTERS,
+                     module_options=EXACT_ROUNDING)
+
+
+corner_searches = _corner_searches(budgeted=False)
+corner_searches_budgeted = _corner_searches(budgeted=True)
 
 
 @wp.kernel(enable_backward=False)
