@@ -6,7 +6,6 @@ which run one as a child process (tests, benchmarks, the demo)."""
 from __future__ import annotations
 
 import dataclasses
-import faulthandler
 import logging
 import multiprocessing
 import multiprocessing.connection
@@ -15,6 +14,7 @@ import socket
 import sys
 import threading
 import time
+import traceback
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator, Protocol, Sequence
 
@@ -40,10 +40,12 @@ def run_worker(settings: WorkerSettings, ready: _Settable | None = None) -> int:
     `ready` (for instance a multiprocessing Event) is set once the engine's kernels are loaded (see
     warm_up_engine) and the worker's keys and liveliness token are declared. Exit status 1: the Zenoh
     session could not be opened (a taken port, a config Zenoh refuses), or a worker of the same id already
-    serves the namespace; 2: the engine or the device is unavailable.
+    serves the namespace; 2: the engine or the device is unavailable. A signal while the kernels load ends it
+    there, with status 0 (see _StoppedWhileLoading).
     """
     _configure_logging()
-    stop = _stop_on_signals()
+    loading = threading.Event()
+    stop = _stop_on_signals(interrupt_while=loading)
     try:
         build_field, device = engine_field_builder(settings.device)
     except ImportError as error:
@@ -57,7 +59,12 @@ def run_worker(settings: WorkerSettings, ready: _Settable | None = None) -> int:
         return 1
     with session:
         try:
+            loading.set()
             warm_up_engine(device)
+            loading.clear()  # from here on a signal only sets `stop`, which serve watches
+        except _StoppedWhileLoading:
+            log.info("stopped while loading the engine's kernels on %s", device)
+            return 0
         except Exception:  # noqa: BLE001 - any failure here means the engine cannot serve on this device
             log.exception("the engine failed on %s before serving anything", device)
             return 2
@@ -246,7 +253,7 @@ def exit_now(status: int) -> None:
     interpreter finalisation. By then its threads are joined and its session is closed; finalisation only
     tears down Zenoh's native threads, and one re-entering Python during it made about one exit in three
     abort (SIGABRT, "FATAL: exception not rethrown") in the demo on 2026-11-21."""
-    faulthandler.cancel_dump_traceback_later()
+    _SHUTDOWN_REPORTED.set()  # ended in time: no report
     logging.shutdown()
     sys.stdout.flush()
     sys.stderr.flush()
@@ -313,15 +320,47 @@ def _configure_logging() -> None:
 # A process still running this long after SIGINT/SIGTERM writes every thread's stack to stderr, so a stuck
 # shutdown says where it is stuck (the process then goes on; its parent may still end it).
 SHUTDOWN_REPORT_AFTER_S = 10.0
+_SHUTDOWN_REPORTED = threading.Event()  # set once the process ends in time, or has reported
 
 
-def _stop_on_signals() -> threading.Event:
+class _StoppedWhileLoading(BaseException):
+    """Raised in the main thread by a stop signal that comes while the engine's kernels load. With a cold kernel
+    cache that takes tens of seconds on a CPU (39 s on a 2-core machine), and a worker that only noted the signal
+    exited 33 to 35 s after it (2026-12-02). Nothing is declared on Zenoh yet, and Warp moves a compiled module into
+    its cache by renaming it, so leaving in the middle loses nothing. A BaseException, as KeyboardInterrupt is, so
+    that no `except Exception` on the way (Warp's, the warm-up's) takes it for a failure."""
+
+
+def _stop_on_signals(interrupt_while: threading.Event | None = None) -> threading.Event:
+    """An event set by the first stop signal (`stop_signals`), which also starts the shutdown report; while
+    `interrupt_while` is set, the signal raises _StoppedWhileLoading in the main thread as well (once)."""
     stop = threading.Event()
 
     def on_signal(_number, _frame) -> None:
         if not stop.is_set():
-            faulthandler.dump_traceback_later(SHUTDOWN_REPORT_AFTER_S, exit=False)
+            threading.Thread(target=_report_if_still_running, args=(SHUTDOWN_REPORT_AFTER_S,),
+                             name="badf-shutdown-report", daemon=True).start()
         stop.set()
+        if interrupt_while is not None and interrupt_while.is_set():
+            interrupt_while.clear()
+            raise _StoppedWhileLoading
 
     on_stop_signals(on_signal)
     return stop
+
+
+def _report_if_still_running(after_s: float) -> None:
+    """Write every thread's stack to stderr unless the process has ended (`exit_now`) within `after_s`. It reads
+    the stacks holding the interpreter's lock: faulthandler's watchdog, used before, reads them without it, and
+    reading the main thread's while Warp generated code crashed the worker (SIGSEGV, 2 of 4 stops during a
+    cold-cache warm-up, in an outside check of 2026-12-02)."""
+    if _SHUTDOWN_REPORTED.wait(after_s):
+        return
+    _SHUTDOWN_REPORTED.set()
+    names = {thread.ident: thread.name for thread in threading.enumerate()}
+    lines = [f"badf: still running {after_s:.0f} s after the stop signal; where each thread is:"]
+    for ident, frame in sys._current_frames().items():
+        lines.append(f"thread {names.get(ident, ident)}:")
+        lines.extend(line.rstrip("\n") for line in traceback.format_stack(frame))
+    sys.stderr.write("\n".join(lines) + "\n")
+    sys.stderr.flush()

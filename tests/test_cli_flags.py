@@ -239,6 +239,29 @@ def test_view_heeds_ctrl_c_while_it_waits_for_a_router() -> None:
             view.wait(30)
 
 
+def test_serve_stops_at_once_on_sigterm_while_its_kernels_compile(tmp_path) -> None:
+    """With Warp's kernel cache empty, a worker spends tens of seconds compiling before it serves. SIGTERM then
+    either waited for the whole compile (33 to 35 s) or crashed the worker (SIGSEGV, in faulthandler's report of
+    the stacks 10 s after the signal): 2 of 4 stops in an outside check of 2026-12-02. It now leaves at once,
+    with status 0. Here the cache is a new folder, so the signal comes while the first modules compile."""
+    env = dict(os.environ, WARP_CACHE_PATH=str(tmp_path / "empty-warp-cache"))
+    serve = subprocess.Popen([sys.executable, "-m", "badf.cli", "serve", "--device", "cpu", "--listen",
+                              free_endpoint()], stderr=subprocess.PIPE, text=True, env=env)  # fmt: skip
+    try:
+        for line in serve.stderr:  # logged just before the kernels load
+            if "loading the engine's kernels" in line:
+                break
+        serve.send_signal(signal.SIGTERM)
+        assert serve.wait(timeout=60) == 0  # a liveness bound: one module's compile at most
+        rest = serve.stderr.read()
+        assert "stopped while loading the engine's kernels" in rest, rest[-2000:]
+        assert "engine kernels ready" not in rest and "still running" not in rest
+    finally:
+        if serve.poll() is None:
+            serve.kill()
+            serve.wait(30)
+
+
 @pytest.mark.parametrize(("file_name", "name"), [("my frames+v2", "my_frames_v2"), ("café", "caf_"), ("x" * 120, "x" * 100)])
 def test_demo_names_its_object_after_any_file(file_name: str, name: str) -> None:
     """`badf demo --mesh/--sequence` names the object after the file: a sequence's name was not cleaned up,
@@ -247,3 +270,28 @@ def test_demo_names_its_object_after_any_file(file_name: str, name: str) -> None
     from badf.server._demo import _key_safe
 
     assert check_name(_key_safe(file_name)) == name
+
+
+def test_the_shutdown_report_names_every_thread_and_only_once(capsys) -> None:
+    """A process still running SHUTDOWN_REPORT_AFTER_S after its stop signal writes where each thread is. The
+    report reads the stacks holding the interpreter's lock (faulthandler's, which does not, crashed a worker),
+    and a process that ends in time (exit_now sets the flag) writes none."""
+    import threading
+
+    from badf.server import _run
+
+    parked = threading.Event()
+    waiter = threading.Thread(target=parked.wait, name="badf-test-parked", daemon=True)
+    waiter.start()
+    try:
+        _run._SHUTDOWN_REPORTED.clear()
+        _run._report_if_still_running(0.01)
+        report = capsys.readouterr().err
+        assert report.startswith("badf: still running 0 s after the stop signal")
+        assert "thread badf-test-parked:" in report and "thread MainThread:" in report
+        assert "in _report_if_still_running" in report  # the reporting thread's own stack, read live
+        _run._report_if_still_running(0.01)  # reported already: once is enough
+        assert capsys.readouterr().err == ""
+    finally:
+        parked.set()
+        waiter.join(10)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import reprlib
 from collections.abc import Iterable
 
 import numpy as np
@@ -141,8 +142,13 @@ def check_band(band) -> float | None:
     except OverflowError:  # an int past float's range
         value = float("inf")
     if not np.isfinite(value) or value <= 0.0:
-        raise InvalidInputError(f"band must be a positive finite number or None, got {band!r}")
+        raise InvalidInputError(f"band must be a positive finite number or None, got {_shown(band)}")
     return value
+
+
+def _shown(value) -> str:
+    """A value as an error message shows it: its repr, shortened where it is long (an int of 400 digits)."""
+    return reprlib.repr(value)
 
 
 def check_region(region) -> np.ndarray | None:
@@ -174,7 +180,7 @@ def check_choice(value, name: str, choices: tuple[str, ...]) -> str:
 def check_outputs(outputs) -> tuple[str, ...]:
     if isinstance(outputs, str):
         outputs = (outputs,)
-    if not isinstance(outputs, Iterable):
+    if isinstance(outputs, (bytes, bytearray)) or not isinstance(outputs, Iterable):  # bytes iterate as integers
         raise InvalidInputError(f"outputs must be a sequence of names from {QUERY_OUTPUTS}, got {outputs!r}")
     names = tuple(outputs)
     if not names:
