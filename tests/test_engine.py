@@ -18,6 +18,7 @@ from badf.server.adf._bvh import (
     NO_CHILD,
     UNLIMITED_VISITS,
     BvhView,
+    _wide_searches,
     leaf_distance_held_to_box_sq,
     leaf_distance_sq,
     nearest_leaf_past_ties,
@@ -1449,12 +1450,16 @@ def test_points_far_beyond_a_tiny_mesh_get_finite_exact_distances(device):
                 assert np.allclose(result.normal[0], [1, 0, 0], atol=1e-6)
 
 
+# the queries' walk (past tied boxes) built with a budget, which the queries' own does not read
+_, _nearest_past_ties_budgeted = _wide_searches(past_tied_boxes=True, budgeted=True)
+
+
 @wp.kernel
 def _budgeted_query_searches(bvh: BvhView, points: wp.array(dtype=wp.vec3), budget: int,
                              finished: wp.array(dtype=wp.int32), distance: wp.array(dtype=wp.float32)):
     i = wp.tid()
     p = points[i]
-    leaf, d_sq, done = nearest_leaf_past_ties(bvh, p, 0, leaf_distance_sq(bvh, 0, p), budget)
+    leaf, d_sq, done = _nearest_past_ties_budgeted(bvh, p, 0, leaf_distance_sq(bvh, 0, p), budget)
     finished[i] = wp.where(done, 1, 0)
     distance[i] = wp.sqrt(d_sq)
 

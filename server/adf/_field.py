@@ -966,12 +966,14 @@ def _float32_holds(power_of_two: float) -> bool:
 
 
 def _pull_far_points(points: np.ndarray, domain: _Domain):
-    """Points more than FAR_POINT domain sides from its centre, whose squared local distances could overflow
-    float32 in the kernels, are moved along the line to the centre until they are FAR_POINT sides away. At
-    that range every point of the mesh lies in the same direction to within float32's precision, so the
-    moved point has the same nearest face, closest point and normal, and a distance shorter by exactly the
-    move. Returns (all points in local float32 coordinates, (moved rows, their moves in world units)), or
-    (None, None) when no point is that far."""
+    """Points more than FAR_POINT domain sides from its centre (whose squared local distances could overflow
+    float32 in the kernels, and whose distances to all faces float32 rounds alike) are moved along the line to
+    the centre until they are FAR_POINT sides away. For a mesh within r of the centre, a point's distance is the
+    moved point's plus the move to within r^2 / (2 FAR_POINT), 3.6e-7 of the side: far below float32's rounding
+    of such distances (1/16 of the side at 2^20 sides). The moved point's nearest face is therefore as near as
+    any to that rounding, and its closest point is the one reported. Its normal points within r / FAR_POINT
+    (8e-7 radians) of the point's own. Returns (all points in local float32 coordinates, (moved rows, their moves
+    in world units)), or (None, None) when no point is that far."""
     if len(points) == 0:
         return None, None
     limit = FAR_POINT * domain.local_side
