@@ -42,6 +42,11 @@ def captured_search(path: str, device: str):
     finally:
         wp.launch = launch
     inputs = captured["inputs"][:SEEDING_INPUTS]
+    if wp.get_device(device).is_cpu:
+        # the CPU's searches are launched in chunks (launch_per_item), so the keys and count captured are the last
+        # chunk's: take the whole frame's
+        octree = field._octree
+        inputs[0], inputs[1], inputs[2] = octree.corner_keys, octree.corner_set.view.count, octree.corner_capacity
     count = int(inputs[1].numpy()[0])
     return field, inputs, count, np.abs(field._corners.value.numpy()[:count])
 

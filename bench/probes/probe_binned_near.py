@@ -131,13 +131,6 @@ def _write_back(left_count: wp.array(dtype=wp.int32), left_corner: wp.array(dtyp
 def main():
     path, device, out = mesh_device_out()
     field, inputs, count, truth = captured_search(path, device)
-    if device == "cpu":
-        # the CPU's searches are launched in chunks (launch_per_item), so the captured keys and count are the last
-        # chunk's: take the whole frame's
-        octree = field._octree
-        inputs[0], inputs[1], inputs[2] = octree.corner_keys, octree.corner_set.view.count, octree.corner_capacity
-        count = int(inputs[1].numpy()[0])
-        truth = np.abs(field._corners.value.numpy()[:count])
     corner_keys, count_array, capacity, origin, cell = inputs[0], inputs[1], inputs[2], inputs[3], float(inputs[4])
     bvh = inputs[7]
     depth = int(inputs[6])

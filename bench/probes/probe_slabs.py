@@ -167,18 +167,12 @@ def _walk(use_slabs: bool, max_registers: int | None = None):
     searches.__name__ = searches.__qualname__ = ("slab_searches" if use_slabs else "counted_searches") + (
         f"_cap{max_registers}" if max_registers else "")
     return wp.kernel(searches, enable_backward=False, module="unique", module_options=EXACT_ROUNDING,
-                     cuda_max_registers=max_registers or 0)
+                     cuda_max_registers=max_registers)
 
 
 def main():
     path, device, out = mesh_device_out()
     field, inputs, count, truth = captured_search(path, device)
-    if device == "cpu":
-        # the CPU's searches are launched in chunks (launch_per_item): take the whole frame's keys and count
-        octree = field._octree
-        inputs[0], inputs[1], inputs[2] = octree.corner_keys, octree.corner_set.view.count, octree.corner_capacity
-        count = int(inputs[1].numpy()[0])
-        truth = np.abs(field._corners.value.numpy()[:count])
     assert len(inputs) == SEEDING_INPUTS
     capacity, bvh, cell = inputs[2], inputs[7], float(inputs[4])
     truth_leaf = field._corners.leaf.numpy()[:count].copy()
