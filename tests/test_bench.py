@@ -13,7 +13,7 @@ from pathlib import Path
 import meshes
 import pytest
 import tolerances as tol
-from conftest import process_group_members, wait_until
+from conftest import as_from_a_terminal, process_group_members, wait_until
 
 from badf.bench import _cli
 
@@ -95,7 +95,7 @@ def test_a_signal_ends_a_benchmark_and_the_processes_it_started(tmp_path: Path, 
                "--out", str(tmp_path / "service.json")]  # fmt: skip
     # a session of its own, so the benchmark and everything it starts share one process group to inspect
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                               start_new_session=True)  # fmt: skip
+                               start_new_session=True, preexec_fn=as_from_a_terminal)  # fmt: skip
     try:
         # the benchmark, the resource tracker, the echo router and the worker
         wait_until(lambda: len(process_group_members(process.pid)) >= 4, timeout=300,

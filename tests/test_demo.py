@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import free_endpoint, process_group_members, wait_until
+from conftest import as_from_a_terminal, free_endpoint, process_group_members, wait_until
 
 DEMO_TIMEOUT_S = 900  # includes the first kernel compilation on a 2-core machine
 
@@ -21,6 +21,7 @@ def _start(*args: str) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "badf.cli", "demo", *args, "--no-viewer", "--listen", free_endpoint()],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+        preexec_fn=as_from_a_terminal,
     )  # fmt: skip
 
 
