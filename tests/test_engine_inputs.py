@@ -62,6 +62,22 @@ def test_construction_rejects_bad_input(kwargs, message):
         DistanceField(args.pop("vertices"), args.pop("faces"), **args)
 
 
+@pytest.mark.parametrize(("kwargs", "start"), [
+    ({"depth": 10**400}, "depth must be in 1..10, got 1000"),
+    ({"halo": 10**400}, "halo must be an integer in 0..2, got 1000"),
+    ({"sign": "x" * 5000}, "sign must be one of auto, pseudonormal, winding, none; got 'xxx"),
+    ({"refine": "y" * 3000}, "refine must be one of surface, centroid; got 'yyy"),
+    ({"coherence": 10**400}, "coherence must be True or False, got 1000"),
+])
+def test_a_huge_bad_value_is_named_in_a_line(kwargs, start):
+    """Every check that names the value it refuses cuts a long one in the middle (the band's 401 digits were
+    written out whole, and so were a depth's, a 5,000-character sign's and the others', 2026-12-02)."""
+    with pytest.raises(InvalidInputError) as refused:
+        DistanceField(VERTICES, FACES, device="cpu", **kwargs)
+    message = str(refused.value)
+    assert message.startswith(start) and "..." in message and len(message) < 200, message
+
+
 def test_bad_frames_and_queries_leave_the_field_as_it_was(device):
     vertices, faces = meshes.sphere()
     field = DistanceField(vertices, faces, depth=4, device=device)

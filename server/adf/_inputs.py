@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import reprlib
 from collections.abc import Iterable
 
 import numpy as np
@@ -118,15 +117,15 @@ def as_faces(value, vertex_count: int) -> np.ndarray:
 
 def check_depth(depth) -> int:
     if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)):
-        raise InvalidInputError(f"depth must be an integer in 1..{MAX_DEPTH}, got {depth!r}")
+        raise InvalidInputError(f"depth must be an integer in 1..{MAX_DEPTH}, got {_shown(depth)}")
     if not 1 <= int(depth) <= MAX_DEPTH:
-        raise InvalidInputError(f"depth must be in 1..{MAX_DEPTH}, got {depth}")
+        raise InvalidInputError(f"depth must be in 1..{MAX_DEPTH}, got {_shown(int(depth))}")
     return int(depth)
 
 
 def check_halo(halo) -> int:
     if isinstance(halo, bool) or not isinstance(halo, (int, np.integer)) or not 0 <= int(halo) <= MAX_HALO:
-        raise InvalidInputError(f"halo must be an integer in 0..{MAX_HALO}, got {halo!r}")
+        raise InvalidInputError(f"halo must be an integer in 0..{MAX_HALO}, got {_shown(halo)}")
     return int(halo)
 
 
@@ -134,11 +133,11 @@ def check_band(band) -> float | None:
     if band is None:
         return None
     if isinstance(band, (bool, np.bool_, str, bytes)):
-        raise InvalidInputError(f"band must be a positive number or None, got {band!r}")
+        raise InvalidInputError(f"band must be a positive number or None, got {_shown(band)}")
     try:
         value = float(band)
     except (TypeError, ValueError):
-        raise InvalidInputError(f"band must be a positive number or None, got {band!r}") from None
+        raise InvalidInputError(f"band must be a positive number or None, got {_shown(band)}") from None
     except OverflowError:  # an int past float's range
         value = float("inf")
     if not np.isfinite(value) or value <= 0.0:
@@ -146,9 +145,15 @@ def check_band(band) -> float | None:
     return value
 
 
+_SHOWN_LENGTH = 100
+
+
 def _shown(value) -> str:
-    """A value as an error message shows it: its repr, shortened where it is long (an int of 400 digits)."""
-    return reprlib.repr(value)
+    """A value as an error message shows it: its repr, cut in the middle where it is long (an int of 400 digits,
+    a string of thousands of characters), so that the message stays a line. The protocol's checks cut theirs the
+    same way (badf.protocol._messages._short), which this layer does not import."""
+    text = repr(value)
+    return text if len(text) <= _SHOWN_LENGTH else f"{text[:60]}...{text[-20:]}"
 
 
 def check_region(region) -> np.ndarray | None:
@@ -157,7 +162,7 @@ def check_region(region) -> np.ndarray | None:
     if region is None:
         return None
     if isinstance(region, (bool, str, bytes)):
-        raise InvalidInputError(f"region must be None or a box [[xmin, ymin, zmin], [xmax, ymax, zmax]], got {region!r}")
+        raise InvalidInputError(f"region must be None or a box [[xmin, ymin, zmin], [xmax, ymax, zmax]], got {_shown(region)}")
     arr = _numeric_array(region, "region")
     if arr.shape != (2, 3):
         raise InvalidInputError(f"region must have shape (2, 3) (its lowest corner, then its highest), got {arr.shape}")
@@ -173,7 +178,7 @@ def check_region(region) -> np.ndarray | None:
 
 def check_choice(value, name: str, choices: tuple[str, ...]) -> str:
     if not isinstance(value, str) or value not in choices:
-        raise InvalidInputError(f"{name} must be one of {', '.join(choices)}; got {value!r}")
+        raise InvalidInputError(f"{name} must be one of {', '.join(choices)}; got {_shown(value)}")
     return value
 
 
@@ -181,19 +186,19 @@ def check_outputs(outputs) -> tuple[str, ...]:
     if isinstance(outputs, str):
         outputs = (outputs,)
     if isinstance(outputs, (bytes, bytearray)) or not isinstance(outputs, Iterable):  # bytes iterate as integers
-        raise InvalidInputError(f"outputs must be a sequence of names from {QUERY_OUTPUTS}, got {outputs!r}")
+        raise InvalidInputError(f"outputs must be a sequence of names from {QUERY_OUTPUTS}, got {_shown(outputs)}")
     names = tuple(outputs)
     if not names:
         raise InvalidInputError(f"outputs must name at least one of {', '.join(QUERY_OUTPUTS)}")
     unknown = [name for name in names if name not in QUERY_OUTPUTS]
     if unknown:
-        raise InvalidInputError(f"unknown outputs {unknown}; expected names from {', '.join(QUERY_OUTPUTS)}")
+        raise InvalidInputError(f"unknown outputs {_shown(unknown)}; expected names from {', '.join(QUERY_OUTPUTS)}")
     return tuple(dict.fromkeys(names))
 
 
 def check_flag(value, name: str) -> bool:
     if not isinstance(value, (bool, np.bool_)):
-        raise InvalidInputError(f"{name} must be True or False, got {value!r}")
+        raise InvalidInputError(f"{name} must be True or False, got {_shown(value)}")
     return bool(value)
 
 
@@ -202,20 +207,20 @@ def check_axis(axis) -> int:
         return "xyz".index(axis)
     if _is_whole(axis) and 0 <= int(axis) <= 2:
         return int(axis)
-    raise InvalidInputError(f"axis must be 'x', 'y' or 'z' (or 0, 1, 2), got {axis!r}")
+    raise InvalidInputError(f"axis must be 'x', 'y' or 'z' (or 0, 1, 2), got {_shown(axis)}")
 
 
 def check_finite_number(value, name: str) -> float:
     if isinstance(value, (str, bytes, bool, np.bool_)):  # float("0.5") and float(True) would pass
-        raise InvalidInputError(f"{name} must be a number, got {value!r}")
+        raise InvalidInputError(f"{name} must be a number, got {_shown(value)}")
     try:
         number = float(value)
     except (TypeError, ValueError):
-        raise InvalidInputError(f"{name} must be a number, got {value!r}") from None
+        raise InvalidInputError(f"{name} must be a number, got {_shown(value)}") from None
     except OverflowError:  # an int past float's range
         number = float("inf")
     if not np.isfinite(number):
-        raise InvalidInputError(f"{name} must be finite, got {value!r}")
+        raise InvalidInputError(f"{name} must be finite, got {_shown(value)}")
     return number
 
 
@@ -223,10 +228,10 @@ def check_resolution(resolution, limit: int = 2048) -> tuple[int, int]:
     """(rows, cols) from an int (square) or a (cols, rows) pair, each 1..limit."""
     pair = (resolution, resolution) if _is_whole(resolution) else resolution
     if not (isinstance(pair, (tuple, list, np.ndarray)) and len(pair) == 2 and all(_is_whole(x) for x in pair)):
-        raise InvalidInputError(f"resolution must be an int or (cols, rows) of ints, got {resolution!r}")
+        raise InvalidInputError(f"resolution must be an int or (cols, rows) of ints, got {_shown(resolution)}")
     cols, rows = (int(x) for x in pair)
     if not (1 <= cols <= limit and 1 <= rows <= limit):
-        raise InvalidInputError(f"resolution must be 1..{limit} per side, got {resolution!r}")
+        raise InvalidInputError(f"resolution must be 1..{limit} per side, got {_shown(resolution)}")
     return rows, cols
 
 
@@ -237,5 +242,5 @@ def _is_whole(value) -> bool:
 
 def check_level(level, depth: int) -> int:
     if not _is_whole(level) or not 0 <= int(level) <= depth:
-        raise InvalidInputError(f"max_level must be an integer in 0..{depth}, got {level!r}")
+        raise InvalidInputError(f"max_level must be an integer in 0..{depth}, got {_shown(level)}")
     return int(level)
