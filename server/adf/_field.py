@@ -977,8 +977,13 @@ def _pull_far_points(points: np.ndarray, domain: _Domain):
     if len(points) == 0:
         return None, None
     limit = FAR_POINT * domain.local_side
-    if float(np.abs(points).max()) <= limit / domain.scale / 2.0 - float(np.abs(domain.centre).max()):
-        return None, None  # every point is nearer than limit / sqrt(3) on every axis
+    lo, hi = bounds(points)
+    reach = float(np.maximum(np.abs(lo - domain.centre), np.abs(hi - domain.centre)).max())
+    if reach * domain.scale <= limit / 2.0:
+        # every point within limit / 2 of the centre on every axis, so nearer than limit: nothing to move. Measured
+        # from the centre, not the origin, so a mesh far from the origin (1e6 away with a side of 1) does not pay
+        # the float64 pass below on every query (1.9 ms for 65,536 points on a 2-core machine, 2026-12-02)
+        return None, None
     local = (points.astype(np.float64) - domain.centre) * domain.scale
     radius = np.sqrt(np.einsum("ij,ij->i", local, local))
     rows = np.flatnonzero(radius > limit)
