@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One call on a GPU machine (the device tool): set up, check on CUDA, then time.
-#   bash bench/gpu_session.sh [tests] [engine] [signs] [split] [far] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] [shapes] [binned] [slabs] ...
+#   bash bench/gpu_session.sh [tests] [engine] [signs] [split] [far] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] [shapes] [binned] [slabs] [capped] ...
 # Expects warp-lang and the wheels unpacked by ../shared/gpu/setup.sh (sourced before), the shared meshes
 # copied into $BADF_SHARED_DATA (default .gpudata/), and writes logs and JSON under $OUT.
 # The SAH shape's builder runs on Warp's CPU back-end, whose compiler ../shared/gpu/pack.sh leaves out: carry it as
@@ -78,6 +78,11 @@ for step in "$@"; do
         python3 bench/probes/probe_slabs.py "$BADF_SHARED_DATA/$mesh.npz" cuda:0 --out "$out/slabs-$mesh.json" \
           2>&1 | grep -v '^Module' | tee "$out/slabs-$mesh.log" | tail -6
       done ;;
+    capped)
+      # an open mesh's corner sides from its holes' caps (pseudonormals of the capped mesh less the caps' solid
+      # angles) against the engine's winding walk: times on the device, sides against the float64 oracle (a probe)
+      python3 bench/probes/probe_capped_winding.py "$BADF_SHARED_DATA"/{stanford-bunny,sumner_horse_gallop}.npz \
+        --device cuda:0 --out "$out/capped-winding.json" 2>&1 | grep -v '^Module' | tee "$out/capped-winding.log" | tail -4 ;;
     shapes)
       # the SAH shape's host time (one thread and all), its CUDA tests, then the engine on either shape, alternated:
       # the bunny's engine bench on each, and objects on either alternated (about 5 minutes from a cold start)
