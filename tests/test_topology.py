@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import meshes
-from badf.server.adf._sign import _stable_order, analyse_topology, face_components, face_volumes, with_fans
+import oracle
+from badf.server.adf._sign import _stable_order, analyse_topology, face_components, face_volumes, rim_fans, with_fans
 
 
 def reference_topology(faces: np.ndarray, vertices: np.ndarray) -> dict:
@@ -224,3 +225,22 @@ def test_face_volumes_and_parts_match_the_reference(name):
         return rank[inverse.reshape(-1)]
 
     np.testing.assert_array_equal(by_first_face(labels), by_first_face(expected))
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_the_rim_fans_close_the_boundary_so_winding_numbers_add_up_to_whole_numbers(name):
+    """With `rim_fans`' fans, any mesh (holes, a seam left unwelded, a fin, a flipped face, a face naming a vertex
+    twice, a sheet, a lone triangle) bounds nothing: the float64 oracle's winding number of faces and fans together
+    is a whole number at points off both, which is what lets the engine correct a walk's w near 1/2. Meshes with a
+    boundary are the ones whose own winding numbers are not whole, so the check can fail."""
+    vertices, faces = (np.asarray(a) for a in CASES[name]())
+    fans = rim_fans(faces)
+    v = vertices.astype(np.float64)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    points = np.random.default_rng(11).uniform(lo - 0.2 * (hi - lo), hi + 0.2 * (hi - lo), (200, 3))
+    own = oracle.winding_number(points, v, faces)
+    both = own + oracle.winding_number(points, v, fans)
+    np.testing.assert_allclose(both, np.round(both), rtol=0, atol=1e-9)
+    if analyse_topology(faces, vertices).summary()["boundary_edges"] > 0:
+        assert len(fans) > 0 and np.max(np.abs(own - np.round(own))) > 1e-3
+        assert rim_fans(faces, limit=0) is None  # past the limit: no fans, and the walk's w stays

@@ -48,10 +48,11 @@ from badf.server.adf._geometry import (
     thread_fence,
     triangle_distance_sq,
 )
-from badf.server.adf._tolerances import BOX_SLACK, WINDING_FAR_FIELD, WINDING_FAR_FIELD_SAH
+from badf.server.adf._tolerances import BOX_SLACK, RIM_TRUST, WINDING_FAR_FIELD, WINDING_FAR_FIELD_SAH
 
 _BOX_SLACK = wp.constant(BOX_SLACK)
 _INV_FOUR_PI = wp.constant(1.0 / (4.0 * math.pi))
+_RIM_TRUST = wp.constant(RIM_TRUST)
 LEAF_SIZE = wp.constant(1)
 UNLIMITED_VISITS = wp.constant(2**31 - 1)
 # A 4-wide node's entry with no child; its box is EMPTY_BOX..-EMPTY_BOX, which no point comes within reach of.
@@ -111,6 +112,9 @@ class BvhView:
     wide_planes: wp.array(dtype=wp.vec4)
     wide_child: wp.array(dtype=wp.int32)
     wide_first: wp.array(dtype=wp.int32)  # the first leaf under each 4-wide node (the queries' tie test)
+    # The fans that close the mesh's rim (`_sign.rim_fans`), three corners each, this frame's; rim_count 0: none
+    rim: wp.array(dtype=wp.vec3)
+    rim_count: int
 
 
 class Bvh:
@@ -120,7 +124,8 @@ class Bvh:
     given (`_bvh_shape.sah_shape`): that tree is linked at the first build and kept, and later builds (a frame that
     moves the domain) only sort the keys that seed searches without a last frame's faces."""
 
-    def __init__(self, face_count: int, *, with_moments: bool, buffers: DeviceBuffers, shape: Shape | None = None):
+    def __init__(self, face_count: int, *, with_moments: bool, buffers: DeviceBuffers, shape: Shape | None = None,
+                 rim: np.ndarray | None = None):
         self.face_count = face_count
         self.shape = shape if face_count > 1 else None
         self.far_field = WINDING_FAR_FIELD if self.shape is None else WINDING_FAR_FIELD_SAH
@@ -142,6 +147,12 @@ class Bvh:
         self.triangles = b.array("bvh.triangles", 3 * n, wp.vec4)
         self.node_moments = b.array("bvh.node_moments", 4 * max(n - 1, 1) if with_moments else 1, wp.vec4)
         self.wide = WideTree(n, b)
+        # the rim's fans (vertex ids), and their corners in this frame, written by each refit
+        self.rim_count = 0 if rim is None else len(rim)
+        self.rim_faces = b.array("bvh.rim_faces", max(self.rim_count, 1), wp.vec3i)
+        if self.rim_count:
+            self.rim_faces.assign(rim)
+        self.rim = b.array("bvh.rim", 3 * max(self.rim_count, 1), wp.vec3)
         self._buffers = b
         self._cuts: dict[int, wp.array] = {}
 
@@ -236,6 +247,9 @@ class Bvh:
             outputs=[self.triangles, w.planes, w.arrivals, self.node_moments],
             device=self.device,
         )
+        if self.rim_count:
+            wp.launch(_rim_corners, dim=self.rim_count, inputs=[vertices, self.rim_faces], outputs=[self.rim],
+                      device=self.device)
 
     def cut(self, levels: int) -> wp.array:
         """The 4-wide view's entries `cut_bits(levels)` binary levels below the root (2^cut_bits(levels) of them, -1
@@ -266,6 +280,7 @@ class Bvh:
         v.far_field = self.far_field
         v.node_moments = self.node_moments
         v.wide_planes, v.wide_child, v.wide_first = self.wide.planes, self.wide.child, self.wide.first
+        v.rim, v.rim_count = self.rim, self.rim_count
         return v
 
     def leaf_faces(self) -> np.ndarray:
@@ -741,6 +756,32 @@ def _winding_number_function(careful: bool):
 # check, orientation)
 winding_number = _winding_number_function(False)
 winding_number_careful = _winding_number_function(True)
+
+
+@wp.func
+def rim_corrected(bvh: BvhView, p: wp.vec3, w: float) -> float:
+    """A walk's winding number w of p made exact by the rim's fans C: the mesh and C close each other's boundary,
+    so w + w_C is a whole number k, and the oracle's w is k - w_C, with w_C summed over C's solid angles in full
+    (float64 where float32 cancels). Where w + w_C is farther than RIM_TRUST from a whole number (a walk that
+    erred that much, or p on a fan), w is returned as it came."""
+    rim = float(0.0)
+    for t in range(bvh.rim_count):
+        rim += solid_angle_careful(p, bvh.rim[3 * t], bvh.rim[3 * t + 1], bvh.rim[3 * t + 2])
+    rim *= _INV_FOUR_PI
+    closed = w + rim
+    whole = wp.round(closed)
+    if wp.abs(closed - whole) < _RIM_TRUST:
+        return whole - rim
+    return w
+
+
+@wp.kernel(enable_backward=False)
+def _rim_corners(vertices: wp.array(dtype=wp.vec3), rim_faces: wp.array(dtype=wp.vec3i), rim: wp.array(dtype=wp.vec3)):
+    t = wp.tid()
+    fan = rim_faces[t]
+    rim[3 * t] = vertices[fan[0]]
+    rim[3 * t + 1] = vertices[fan[1]]
+    rim[3 * t + 2] = vertices[fan[2]]
 
 
 @wp.kernel(enable_backward=False)

@@ -61,6 +61,7 @@ from badf.server.adf._sign import (
     face_volumes,
     frame_watch_order,
     resolve_sign,
+    rim_fans,
     spread_sample,
     surface_enters_solid,
     with_fans,
@@ -428,7 +429,10 @@ class DistanceField:
         self._graph = None  # (key, graph, stage names, keep queued) of the captured planned frame
         self._graph_candidate = None  # key of the last planned frame run eagerly
         self.use_graphs = True
-        self._bvh = Bvh(len(f), with_moments=self._sign != "none", buffers=b, shape=shape)
+        # the fans that make an open mesh's winding numbers exact where they come near 1/2 (None: a rim too long)
+        rim = rim_fans(f) if self._sign != "none" else np.zeros((0, 3), np.int32)
+        self._rim_fans = None if rim is None else len(rim)
+        self._bvh = Bvh(len(f), with_moments=self._sign != "none", buffers=b, shape=shape, rim=rim)
         self._octree = Octree(self._depth, self._refine, self._halo, b)
         self._octree.surface_area = area
         self._normals = Pseudonormals(self._sign, self._topology, self._faces, b)
@@ -642,6 +646,9 @@ class DistanceField:
             # this frame pulled apart vertices the first frame's weld joined along an edge: signed by winding
             "seams_torn": self._normals.frame_seams_torn,
             "topology": self._topology.summary(),
+            # fans closing the faces' boundary, which make winding numbers near 1/2 exact (0: none needed or no
+            # sign; None: a rim longer than RIM_LIMIT, left to the walk)
+            "rim_fans": self._rim_fans,
             "domain": {"centre": self._domain.centre.tolist(), "side": self._domain.side,
                        "finest_cell": self._domain.side / (1 << self._depth)},
             "frame": self._frame,

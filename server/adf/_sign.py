@@ -20,6 +20,7 @@ from badf.server.adf._bvh import (
     BvhView,
     entry_distances_sq,
     leaf_triangle,
+    rim_corrected,
     wide_stack_int,
     winding_number,
     winding_number_careful,
@@ -39,6 +40,8 @@ from badf.server.adf._tolerances import (
     CANCELLED_PSEUDONORMAL,
     DEGENERATE_AREA,
     MIN_ENCLOSED_VOLUME,
+    RIM_DOUBT,
+    RIM_LIMIT,
     SOLID_BESIDE_REACH,
 )
 
@@ -56,6 +59,7 @@ _CANCELLED = wp.constant(CANCELLED_PSEUDONORMAL)
 # past float32's rounding of it, well short of another face's (see _reads_inside_by_a_face_within)
 _NEAR_TIE_SQ = wp.constant(1.002001)
 _MIN_ENCLOSED = wp.constant(MIN_ENCLOSED_VOLUME)
+_RIM_DOUBT = wp.constant(RIM_DOUBT)
 _BESIDE_REACH = wp.constant(SOLID_BESIDE_REACH)
 # Points per face that beside_points may look beside (the centroid and six more), and the face count up to
 # which it does (then 7 x 2,048 points fit the registration's check of 16,384 at once).
@@ -394,6 +398,45 @@ def resolve_sign(requested: str, topology: Topology, solid: bool) -> str:
     return "pseudonormal" if topology.closed and solid else "winding"
 
 
+def rim_fans(faces: np.ndarray, limit: int = RIM_LIMIT) -> np.ndarray | None:
+    """Triangles (vertex ids) that close the faces' boundary as a chain, so the mesh and they together bound
+    nothing and their winding number is a whole number wherever it is defined (`_bvh.rim_corrected`).
+
+    The rim is each edge's net use: a face's edge a -> b counts +1 for a -> b, and the faces that run it b -> a take
+    it back, so an edge two faces share the right way round cancels, a hole's edge is left once, an edge three faces
+    use is left once and an edge two faces run the same way is left twice. Seams need no welding: a duplicated
+    vertex's two edges are fanned to one centre, and their fans' solid angles cancel in every frame, even one that
+    pulls the seam apart. Each rim edge s -> e gets the fan (centre, e, s), centre being its connected part's lowest
+    vertex id, so the spokes cancel too (every vertex of the rim starts as many rim edges as end there).
+    An empty array for a mesh with no rim; None where the rim needs more than `limit` fans."""
+    f = np.asarray(faces, dtype=np.int64)
+    start, end = f.reshape(-1), np.roll(f, -1, axis=1).reshape(-1)
+    used = start != end  # a face with a repeated vertex: its zero-length edge bounds nothing
+    start, end = start[used], end[used]
+    count = int(f.max()) + 1 if f.size else 1
+    low, high = np.minimum(start, end), np.maximum(start, end)
+    edges, inverse = np.unique(low * count + high, return_inverse=True)
+    net = np.zeros(len(edges), np.int64)
+    np.add.at(net, inverse.reshape(-1), np.where(start < end, 1, -1))
+    left = net != 0
+    copies = np.abs(net[left])
+    total = int(copies.sum())
+    if total > limit:
+        return None
+    if total == 0:
+        return np.zeros((0, 3), np.int32)
+    low, high = edges[left] // count, edges[left] % count
+    rim_start = np.repeat(np.where(net[left] > 0, low, high), copies)
+    rim_end = np.repeat(np.where(net[left] > 0, high, low), copies)
+    ids, compact = np.unique(np.concatenate([rim_start, rim_end]), return_inverse=True)
+    compact = compact.reshape(-1)
+    part = _connected(compact[:total], compact[total:], len(ids))
+    centre = ids[part[compact[:total]]]
+    fans = np.stack([centre, rim_end, rim_start], axis=1)
+    fans = fans[(centre != rim_start) & (centre != rim_end)]  # a fan from an edge's own end subtends nothing
+    return fans.astype(np.int32)
+
+
 def _vertex_components(faces: np.ndarray, vertex_count: int) -> np.ndarray:
     """A label per vertex, equal for vertices that faces connect."""
     # a face's a-b and b-c join all three; its c-a would join nothing more
@@ -579,8 +622,9 @@ def feature_normal(sign: SignView, face: int, feature: int) -> wp.vec3:
     return sign.edge_normal[sign.face_edge[face][feature - EDGE_AB]]
 
 
-# What the corners' winding kernel finds of each corner: outside, inside, or a float32 solid angle cancelled
-# (a point beside a triangle far longer than it is wide), to be worked out again by `inside_by_winding`
+# What the corners' winding kernel finds of each corner: outside, inside, or to be worked out again by
+# `inside_by_winding`: a float32 solid angle cancelled (a point beside a triangle far longer than it is wide), or
+# |w| came within RIM_DOUBT of 1/2 on a mesh with a rim, where the rim's fans correct it
 WOUND_OUTSIDE = wp.constant(wp.uint8(0))
 WOUND_INSIDE = wp.constant(wp.uint8(1))
 WOUND_CANCELLED = wp.constant(wp.uint8(2))
@@ -588,9 +632,10 @@ WOUND_CANCELLED = wp.constant(wp.uint8(2))
 
 @wp.func
 def wound_side(bvh: BvhView, p: wp.vec3) -> wp.uint8:
-    """WOUND_INSIDE, WOUND_OUTSIDE or WOUND_CANCELLED: the side by float32 winding numbers, unless they cancelled."""
+    """WOUND_INSIDE, WOUND_OUTSIDE or WOUND_CANCELLED: the side by float32 winding numbers, unless they cancelled
+    or, on a mesh with a rim, came near enough to 1/2 for the rim to decide (`inside_by_winding`)."""
     w, cancelled = winding_number(bvh, p)
-    if cancelled:
+    if cancelled or (bvh.rim_count > 0 and wp.abs(wp.abs(w) - 0.5) < _RIM_DOUBT):
         return WOUND_CANCELLED
     return wp.where(wp.abs(w) > 0.5, WOUND_INSIDE, WOUND_OUTSIDE)
 
@@ -598,8 +643,11 @@ def wound_side(bvh: BvhView, p: wp.vec3) -> wp.uint8:
 @wp.func
 def inside_by_winding(bvh: BvhView, p: wp.vec3) -> bool:
     """|w| > 1/2, so an inside-out mesh gives the same answer as the right way round; solid angles in float64
-    where float32 cancels (the corners' kernel takes `wound_side` instead, and this only where it cancelled)."""
+    where float32 cancels, and w made exact by the rim where it came within RIM_DOUBT of 1/2 (`rim_corrected`).
+    The corners' kernel takes `wound_side` instead, and this only where that could not decide."""
     w, _cancelled = winding_number_careful(bvh, p)
+    if bvh.rim_count > 0 and wp.abs(wp.abs(w) - 0.5) < _RIM_DOUBT:
+        w = rim_corrected(bvh, p, w)
     return wp.abs(w) > 0.5
 
 

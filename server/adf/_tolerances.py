@@ -68,6 +68,16 @@ SURFACE_SNAP = 1.0e-6
 WINDING_FAR_FIELD = 2.0
 WINDING_FAR_FIELD_SAH = 2.25
 
+# An open mesh's winding numbers are corrected by its rim (`_sign.rim_fans`: fans C that close the faces' boundary
+# chain, so w_S + w_C is a whole number off the surface). Where a walk's |w| lies within RIM_DOUBT of 1/2 (its
+# expansions erred by up to 0.06 on the shared meshes, and 0.09 on frames that run through themselves), w becomes
+# round(w + w_C) - w_C with w_C summed exactly, which is the oracle's w wherever the walk erred by less than
+# RIM_TRUST; where w + w_C lies farther than that from a whole number the walk's w stays. A rim of more fan
+# triangles than RIM_LIMIT (each point in doubt sums all of them) is left out, and such meshes keep the walk's w.
+RIM_DOUBT = 0.2
+RIM_TRUST = 0.25
+RIM_LIMIT = 4096
+
 # A closed mesh whose enclosed volume is below this fraction of (area x extent) encloses nothing
 # (a doubled sheet, a flat closed shape); "auto" does not pick pseudonormals for it.
 MIN_ENCLOSED_VOLUME = 1.0e-6
