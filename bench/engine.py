@@ -175,7 +175,7 @@ def measure_dense_baseline(vertices, faces, *, device: str, repeat: int, resolut
     side = float(np.max(hi - lo)) * 1.2
     origin = wp.vec3(*((lo + hi) / 2 - side / 2))
     step = side / (resolution - 1)
-    points = wp.array(vertices, dtype=wp.vec3, device=device)
+    points = wp.array(np.ascontiguousarray(vertices, np.float32), dtype=wp.vec3, device=device)
     indices = wp.array(faces.reshape(-1), dtype=wp.int32, device=device)
     grid = wp.zeros(resolution**3, dtype=wp.float32, device=device)
     holder = {}

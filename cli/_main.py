@@ -14,6 +14,9 @@ _SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "bench": ("badf.bench._cli", "bench", "benchmarks: accuracy against run time, service round trips"),
 }
 
+# the subcommands that may run the engine, whose environment settings are checked before they start
+_RUN_THE_ENGINE = ("serve", "demo", "bench")
+
 
 def _load(name: str):
     module_name, extra, _ = _SUBCOMMANDS[name]
@@ -44,4 +47,13 @@ def main(argv: list[str] | None = None) -> int:
     module = _load(name)
     sub = argparse.ArgumentParser(prog=f"badf {name}", description=_SUBCOMMANDS[name][2])
     module.add_arguments(sub)
-    return int(module.run(sub.parse_args(rest)) or 0)
+    args = sub.parse_args(rest)
+    if name in _RUN_THE_ENGINE:
+        from badf.server._environment import cpu_threads_setting
+
+        try:
+            cpu_threads_setting()
+        except ValueError as error:  # one line before anything starts, not a worker's traceback later
+            print(f"badf {name}: {error}", file=sys.stderr)
+            return 2
+    return int(module.run(args) or 0)

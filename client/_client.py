@@ -178,7 +178,41 @@ class Client:
 
     def _register(self, request: RegisterRequest, *, worker: str | None, timeout: float | None) -> ObjectInfo:
         target = self._place(request.name, replace=request.replace, worker=worker, timeout=timeout)
-        return self._ask(self.keys.worker_register(target), request, ObjectInfo, timeout=timeout, worker=target)
+        info = self._ask(self.keys.worker_register(target), request, ObjectInfo, timeout=timeout, worker=target)
+        if not request.replace:
+            self._settle_a_double_registration(info, timeout)
+        return info
+
+    def _settle_a_double_registration(self, mine: ObjectInfo, timeout: float | None) -> None:
+        """Two clients registering one new name on two workers at once can both succeed (placement's check is a
+        query before the registration, not a lock), and the name was then served twice: each handle's requests
+        met the other worker's refusals, and neither was usable (twenty-eighth outside check). The registration
+        on the lowest worker id keeps the name; any other is withdrawn by whichever client sees it, and a client
+        whose own registration is withdrawn gets ObjectExistsError."""
+        key = self.keys.object_info(mine.name)
+        served: list[ObjectInfo] = []
+        for reply in self._get(key, InfoRequest(mine.name), timeout=timeout, fan_out=True):
+            try:
+                served.append(self._read_reply(reply, ObjectInfo, key, timeout))
+            except BadfError:
+                continue  # a worker that cannot say: it does not hold the name for this purpose
+        if len({(info.worker, info.registration) for info in served}) <= 1:
+            return
+        keeper = min(served, key=lambda info: info.worker)
+        for other in served:
+            if (other.worker, other.registration) == (keeper.worker, keeper.registration):
+                continue
+            try:
+                self._ask(self.keys.object_delete(mine.name), DeleteRequest(mine.name, registration=other.registration),
+                          Deleted, timeout=timeout, worker=other.worker, name=mine.name,
+                          registration=other.registration)  # fmt: skip
+            except BadfError:
+                pass  # withdrawn already, by the client that registered it, or its worker went
+        if (mine.worker, mine.registration) != (keeper.worker, keeper.registration):
+            raise ObjectExistsError(
+                f"object {mine.name!r} was registered on worker {keeper.worker} at the same moment; this "
+                f"registration on worker {mine.worker} was withdrawn"
+            )
 
     def object(self, name: str, *, timeout: float | None = None) -> RemoteObject:
         """A handle on an existing object (registered by any client); ObjectNotFoundError if there is none."""
@@ -316,21 +350,29 @@ class Client:
         `registration` (a handle's) an object registered again since then a different object."""
         self._check_worker(worker, name, life)
         try:
-            replies = self._get(key, request, timeout=timeout, cancellation=self._cancellation(worker))
+            # a handle's request takes every reply, not one consolidated: should two workers serve the name for
+            # a moment (see _settle_a_double_registration), the other one's refusal must not hide its own answer
+            replies = self._get(key, request, timeout=timeout, cancellation=self._cancellation(worker),
+                                fan_out=registration is not None)  # fmt: skip
         except WorkerUnavailableError:
             if self._worker_gone(worker, life):  # its token went as the request left: "Query was cancelled"
                 raise self._gone_error(worker, name) from None
             raise
+        refused: BadfError | None = None
         for reply in replies:
             try:
                 return self._read_reply(reply, expect, key, timeout)
-            except BadfError:
+            except BadfError as error:
                 # a request cancelled because its worker went may end in Zenoh's error reply ("Query was
                 # cancelled") rather than with no reply, and one that reached the worker's next life finds
                 # no such object: the same news either way
                 if self._worker_gone(worker, life):
                     raise self._gone_error(worker, name) from None
-                raise
+                if registration is None:
+                    raise
+                refused = refused or error
+        if refused is not None:
+            raise refused
         if self._worker_gone(worker, life):
             raise self._gone_error(worker, name)
         raise self._nobody_answered(key, name=name, worker=worker, timeout=timeout, registration=registration)
@@ -785,8 +827,10 @@ def _worker_gone_error(worker: str, name: str | None, *, seen_going: bool, back:
         )
     how = "went away and came back (a new start under the same id)" if back else "is gone"
     return ObjectUnavailableError(
-        f"object {name!r} is unavailable: its worker {worker} {how}: its liveliness token went away, and the "
-        "object's state with it; register it again, e.g. with reregister() on a handle that registered it"
+        f"object {name!r} is unavailable: its worker {worker} {how}: its liveliness token went away (a worker "
+        "that ended, or one stalled or cut off past Zenoh's lease). A worker that ended took the object's state "
+        "with it: register it again, e.g. with reregister() on a handle that registered it; one that resumes "
+        "still serving it answers the handle again"
     )
 
 

@@ -142,9 +142,10 @@ class WorkerUnavailableError(BadfError, ConnectionError):
 
 
 class ObjectUnavailableError(WorkerUnavailableError):
-    """The object's worker is gone (the client saw its liveliness token go), and the object's state with it;
-    `RemoteObject.reregister()` registers it again on another worker from what the handle kept. Raised by
-    the client only: on the wire it is UNAVAILABLE."""
+    """The object's worker is gone (the client saw its liveliness token go): a worker that ended took the object's
+    state with it, and `RemoteObject.reregister()` registers it again on another worker from what the handle kept;
+    one stalled past Zenoh's lease that resumes still serving it answers the handle again. Raised by the client
+    only: on the wire it is UNAVAILABLE."""
 
 
 class AccessDeniedError(WorkerUnavailableError):

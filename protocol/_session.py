@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import socket
 from typing import Literal, Sequence
 
 import zenoh
@@ -112,6 +113,30 @@ def _address_problem(endpoint: str) -> str | None:
     if len(octets) == 4 and all(o.isascii() and o.isdigit() for o in octets) and any(int(o) > 255 for o in octets):
         return f"names host {host!r}: each part of an IPv4 address is 0 to 255"
     return None
+
+
+def with_a_free_port(endpoint: str) -> str:
+    """A TCP endpoint that names port 0 with that port replaced by one free on its host a moment ago; any other
+    endpoint as it came. Zenoh binds port 0 to a port of its own and tells nobody which (a router on
+    tcp/127.0.0.1:0 logged that it listened on port 0), so the port is chosen before the session opens and
+    logged as it is. Endpoints are checked by `zenoh_config` first."""
+    protocol, _, address = endpoint.partition("/")
+    if protocol.lower() != "tcp":
+        return endpoint
+    split = re.split(r"([?#])", address, maxsplit=1)
+    host_port, rest = split[0], "".join(split[1:])
+    host, colon, port = host_port.rpartition(":")
+    if not colon or port != "0":
+        return endpoint
+    bare = host[1:-1] if host.startswith("[") else host
+    family = socket.AF_INET6 if ":" in bare else socket.AF_INET
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            probe.bind((bare, 0))
+            free = probe.getsockname()[1]
+    except OSError as error:
+        raise InvalidOptionError(f"listen endpoint {endpoint!r}: no port can be bound on {host} ({error})") from None
+    return f"{protocol}/{host}:{free}{rest}"
 
 
 def zenoh_message(error: Exception) -> str:

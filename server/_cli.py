@@ -8,7 +8,8 @@ import argparse
 import sys
 
 from badf.cli._extras import missing_extra
-from badf.protocol import DEFAULT_ENDPOINT, BadfError, check_name
+from badf.protocol import DEFAULT_ENDPOINT, BadfError, check_name, zenoh_config
+from badf.protocol._session import with_a_free_port
 from badf.server._cuda import (
     NoCudaDeviceError,
     device_problem,
@@ -116,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         check_endpoint_lists(args)
+        zenoh_config(mode="router", listen=list(args.listen or []))  # checks their form before any port is taken
+        args.listen = [with_a_free_port(endpoint) for endpoint in args.listen] if args.listen else args.listen
         if args.router_only:
             router = router_settings_from(args)
         else:

@@ -32,6 +32,7 @@ from badf.protocol import (
     WorkerUnavailableError,
     zenoh_config,
 )
+from badf.protocol._session import with_a_free_port
 from badf.server._cuda import device_problem
 from badf.server._mesh_files import MeshFileError, read_frames, read_mesh
 from badf.server._signals import on_stop_signals
@@ -101,6 +102,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         zenoh_config(mode="router", listen=[args.listen])  # checks the endpoint's form, as serve does
+        args.listen = with_a_free_port(args.listen)  # port 0: one chosen now, which the worker, client and viewer share
     except InvalidOptionError as error:
         print(f"badf demo: --listen: {error}", file=sys.stderr)
         return 2

@@ -24,7 +24,8 @@ class MeshFileError(ValueError):
 
 
 def read_frames(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """(frames float32 (T, N, 3), faces int32 (M, 3)); a single mesh is one frame."""
+    """(frames (T, N, 3), float64 where the file's are, else float32; faces int32 (M, 3)); a single mesh is one
+    frame."""
     path = pathlib.Path(path)
     if not path.exists():
         raise MeshFileError(f"{path}: no such file")
@@ -46,8 +47,11 @@ def read_frames(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
                             f"{frames.shape[1]} vertices")
     if not np.issubdtype(frames.dtype, np.number) or np.issubdtype(frames.dtype, np.complexfloating):
         raise MeshFileError(f"{path}: vertices of dtype {frames.dtype}, expected real numbers")
+    # float64 files stay float64 (far from the origin float32 would weld a mesh's vertices: a unit sphere 1e7 out
+    # kept 26 of its 642), and every other type becomes float32, which the engine computes in
+    precision = np.float64 if frames.dtype == np.float64 else np.float32
     with np.errstate(over="ignore"):  # values past float32's range become inf, and are told below
-        frames = np.ascontiguousarray(frames, np.float32)
+        frames = np.ascontiguousarray(frames, precision)
     finite = np.isfinite(frames).all(axis=2)
     if not finite.all():
         frame, vertex = np.argwhere(~finite)[0]
@@ -61,19 +65,24 @@ def read_frames(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
 def _check_engine_takes(path: pathlib.Path, frames: np.ndarray, faces: np.ndarray) -> None:
     """What the engine would refuse at registration, told now with the file's name (a demo started its
     worker, then failed naming no file)."""
-    from badf.server.adf._inputs import MAX_COORDINATE
+    from badf.server.adf._inputs import MAX_COORDINATE, MIN_EXTENT
 
     largest = float(np.abs(frames).max())
     if largest > MAX_COORDINATE:
         raise MeshFileError(f"{path}: a coordinate of {largest:g}; the engine takes coordinates within "
                             f"+-{MAX_COORDINATE:g}")
-    used = frames[0][np.unique(faces)]
-    if float(np.max(used.max(axis=0) - used.min(axis=0))) == 0.0:
+    used = frames[0][np.unique(faces)].astype(np.float64)
+    extent = float(np.max(used.max(axis=0) - used.min(axis=0)))
+    if extent == 0.0:
         raise MeshFileError(f"{path}: the vertices its faces use all coincide (the mesh has zero extent)")
+    if extent < MIN_EXTENT:
+        raise MeshFileError(f"{path}: the mesh's extent is {extent:.3g}; the engine refuses meshes smaller than "
+                            f"{MIN_EXTENT:g} (scale it up)")
 
 
 def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices float32 (N, 3), faces int32 (M, 3)); the first frame of a sequence."""
+    """(vertices (N, 3), float64 where the file's are, else float32; faces int32 (M, 3)); the first frame of a
+    sequence."""
     frames, faces = read_frames(path)
     return frames[0], faces
 

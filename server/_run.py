@@ -54,10 +54,12 @@ def run_worker(settings: WorkerSettings, ready: _Settable | None = None) -> int:
     except ValueError as error:
         log.error("cannot use device %r: %s", settings.device, error)
         return 2
-    session = _open(settings.zenoh_config(), settings.config_file)
+    config = settings.zenoh_config()
+    session = _open(config, settings.config_file)
     if session is None:
         return 1
     with session:
+        log.info("worker listening on %s", ", ".join(configured_endpoints(config, "listen")) or "no endpoint")
         try:
             loading.set()
             warm_up_engine(device)

@@ -142,6 +142,20 @@ def test_serve_on_cuda_where_there_is_none_is_one_clear_line(endpoint: str) -> N
     _assert_one_clear_line(done, "badf serve: --device 'cuda' is not a device here")
 
 
+@pytest.mark.parametrize("value", ["abc", "0"])
+@pytest.mark.parametrize("args", [["serve", "--listen", "<free>"], ["demo", "--no-viewer", "--frames", "1", "--listen",
+                                  "<free>"], ["bench", "engine", "--quick"], ["bench", "random-check", "--cases", "2"]],
+                         ids=lambda args: " ".join(args[:2]) if isinstance(args, list) else args)
+def test_a_bad_cpu_threads_setting_is_one_line_before_anything_starts(args: list[str], value: str) -> None:
+    """BADF_CPU_THREADS that is not a whole number of at least 1: serve logged the engine's failure with a
+    traceback, demo's worker died in one, bench engine ended in one, and random-check counted it as an engine
+    problem in every case (twenty-eighth outside check)."""
+    args = [free_endpoint() if arg == "<free>" else arg for arg in args]
+    done = subprocess.run([sys.executable, "-m", "badf.cli", *args], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "BADF_CPU_THREADS": value})
+    _assert_one_clear_line(done, f"badf {args[0]}: BADF_CPU_THREADS must be")
+
+
 def _assert_one_clear_line(done: subprocess.CompletedProcess, message: str) -> None:
     lines = [line for line in done.stderr.splitlines() if not line.startswith(("Warp ", "   "))]
     assert done.returncode == 2, done.stderr
@@ -217,6 +231,39 @@ def test_a_worker_that_cannot_reach_its_router_says_where_it_looked() -> None:
     assert done.returncode == 1, done.stderr
     assert f"is a router listening at {nobody}?" in done.stderr
     assert "taken" not in done.stderr
+
+
+def test_a_router_on_port_0_says_the_port_it_took() -> None:
+    """`--listen tcp/127.0.0.1:0` logged "router listening on tcp/127.0.0.1:0" while Zenoh took a port of its own,
+    which nobody could then find (twenty-eighth outside check). The port is now chosen before the session opens,
+    and the logged endpoint is one a client reaches."""
+    import re
+    import selectors
+    import socket
+    import time
+
+    router = subprocess.Popen([sys.executable, "-m", "badf.cli", "serve", "--router-only", "--listen",
+                               "tcp/127.0.0.1:0"], stderr=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        watch = selectors.DefaultSelector()
+        watch.register(router.stderr, selectors.EVENT_READ)
+        deadline, said = time.monotonic() + 60.0, ""
+        while "router listening on" not in said and time.monotonic() < deadline and router.poll() is None:
+            if watch.select(timeout=1.0):
+                said += router.stderr.readline()
+        found = re.search(r"router listening on tcp/127\.0\.0\.1:(\d+)", said)
+        assert found, said
+        port = int(found.group(1))
+        assert port != 0
+        with socket.create_connection(("127.0.0.1", port), timeout=10.0):
+            pass  # the router took the port it named
+    finally:
+        router.send_signal(signal.SIGINT)
+        try:
+            router.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            router.kill()
+            router.wait()
 
 
 def test_view_heeds_ctrl_c_while_it_waits_for_a_router() -> None:

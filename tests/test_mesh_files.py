@@ -22,7 +22,7 @@ def test_any_file_trimesh_reads_gives_the_same_triangles(box, tmp_path, suffix: 
     path = tmp_path / f"box{suffix}"
     box.export(path)
     vertices, faces = read_mesh(path)
-    assert vertices.dtype == np.float32 and faces.dtype == np.int32
+    assert vertices.dtype == np.float64 and faces.dtype == np.int32  # trimesh reads float64, and it is kept
     assert faces.shape == box.faces.shape
     # .stl stores each triangle's corners on their own: compare the triangles, not the indices
     np.testing.assert_allclose(np.sort(vertices[faces].reshape(-1, 3), axis=0),
@@ -42,6 +42,20 @@ def test_an_npz_mesh_and_an_npz_sequence(box, tmp_path) -> None:
     np.testing.assert_allclose(read_mesh(tmp_path / "four.npz")[0], box.vertices)  # a sequence's first frame
 
 
+def test_float64_files_keep_their_precision_and_others_become_float32(box, tmp_path) -> None:
+    """A float64 mesh far from the origin would lose its shape in float32 (a unit box 1e7 out: its float32
+    steps are 1.0), so float64 stays float64; float32 and integer coordinates come back float32."""
+    far = box.vertices.astype(np.float64) * 0.25 + 1e7
+    np.savez(tmp_path / "far64.npz", vertices=far, faces=box.faces)
+    np.savez(tmp_path / "near32.npz", vertices=box.vertices.astype(np.float32), faces=box.faces)
+    np.savez(tmp_path / "integers.npz", vertices=np.rint(box.vertices * 2).astype(np.int64), faces=box.faces)
+    vertices, _ = read_mesh(tmp_path / "far64.npz")
+    assert vertices.dtype == np.float64
+    np.testing.assert_array_equal(vertices, far)
+    assert read_mesh(tmp_path / "near32.npz")[0].dtype == np.float32
+    assert read_frames(tmp_path / "integers.npz")[0].dtype == np.float32
+
+
 def test_unreadable_files_are_named_with_what_is_wrong(box, tmp_path) -> None:
     (tmp_path / "text.npz").write_text("not a zip archive")
     (tmp_path / "empty.obj").write_text("# no faces\nv 0 0 0\n")
@@ -53,8 +67,10 @@ def test_unreadable_files_are_named_with_what_is_wrong(box, tmp_path) -> None:
     with_nan = box.vertices.copy()
     with_nan[5, 1] = np.nan
     np.savez(tmp_path / "nan.npz", vertices=with_nan, faces=box.faces)
-    frames = np.stack([box.vertices, box.vertices * 1e39])  # past float32's range in the second frame
+    with np.errstate(over="ignore"):
+        frames = np.stack([box.vertices, box.vertices * 1e39]).astype(np.float32)  # inf in the second frame
     np.savez(tmp_path / "huge.npz", vertices=frames, faces=box.faces)
+    np.savez(tmp_path / "tiny.npz", vertices=box.vertices * 1e-41, faces=box.faces)  # below the engine's 1e-40
     np.savez(tmp_path / "far.npz", vertices=box.vertices + 1e19, faces=box.faces)  # past the engine's 1e18
     np.savez(tmp_path / "point.npz", vertices=np.zeros((3, 3)), faces=[[0, 1, 2]])
     cases = {
@@ -71,6 +87,7 @@ def test_unreadable_files_are_named_with_what_is_wrong(box, tmp_path) -> None:
         tmp_path / "huge.npz": "vertex 0 of frame 1 is [",
         tmp_path / "far.npz": "a coordinate of 1e+19; the engine takes coordinates within +-1e+18",
         tmp_path / "point.npz": "the vertices its faces use all coincide",
+        tmp_path / "tiny.npz": "the mesh's extent is 3e-41; the engine refuses meshes smaller than 1e-40",
     }
     for path, message in cases.items():
         with pytest.raises(MeshFileError, match=re.escape(message)) as raised:

@@ -26,6 +26,7 @@ from badf.protocol import (
     KeySpace,
     NotSupportedError,
     ObjectExistsError,
+    ObjectNotFoundError,
     ObjectInfo,
     ObjectOptions,
     ObjectUnavailableError,
@@ -417,6 +418,40 @@ def test_a_stopped_worker_leaves_the_others_listed_and_placing(endpoint: str) ->
         wait_until(lambda: len(client.workers()) == 2, what="the stopped worker back")
         for name in ("kept", "paused", "placed"):
             client.object(name).delete()
+
+
+def test_a_name_registered_on_two_workers_at_once_is_kept_by_one(endpoint: str, monkeypatch) -> None:
+    """Two clients registering one new name on two workers at once could both succeed, and the name was then
+    served by both: every handle's requests met the other worker's refusals (twenty-eighth outside check: all of
+    them failed, "registered ... since deleted or replaced"). Now the registration on the lowest worker id keeps
+    the name and the other is withdrawn. The race is made here by a client whose placement check misses the
+    other's registration, as one made at the same moment does."""
+    vertices, faces = meshes.load("sphere")
+    points = sample_points(vertices, 60)
+    with (
+        router_and_two_workers(endpoint),
+        Client(endpoint, timeout=60) as first,
+        Client(endpoint, timeout=60) as second,
+    ):
+        wait_until(lambda: len(first.workers()) == 2, what="both workers behind the router")
+        monkeypatch.setattr(second, "_find", lambda name, *, timeout: None)  # its check misses the first's
+        # the late registration is on the keeping worker: it keeps the name, and the other is withdrawn
+        on_right = first.register("twice", vertices, faces, depth=3, worker="right")
+        on_left = second.register("twice", vertices * np.float32(2.0), faces, depth=3, worker="left")
+        assert [(info.name, info.worker) for info in first.objects()] == [("twice", "left")]
+        assert_answers_like(on_left, DistanceField(vertices * np.float32(2.0), faces, depth=3, device="cpu"), points)
+        assert_answers_like(first.object("twice"), DistanceField(vertices * np.float32(2.0), faces, depth=3,
+                                                                 device="cpu"), points)  # fmt: skip
+        with pytest.raises(ObjectNotFoundError):
+            on_right.query(points)
+        # the late registration is on the other worker: refused, and the first stays whole
+        kept = first.register("again", vertices, faces, depth=3, worker="left")
+        with pytest.raises(ObjectExistsError, match="registered on worker left at the same moment"):
+            second.register("again", vertices * np.float32(2.0), faces, depth=3, worker="right")
+        assert [(info.name, info.worker) for info in first.objects()] == [("again", "left"), ("twice", "left")]
+        assert_answers_like(kept, DistanceField(vertices, faces, depth=3, device="cpu"), points)
+        for name in ("again", "twice"):
+            first.object(name).delete()
 
 
 def _requests_waiting(client: Client, worker: str) -> int:

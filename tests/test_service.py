@@ -130,6 +130,19 @@ def test_registered_meshes_answer_like_the_engine(client: Client, mesh: str, opt
     assert_same_answers(remote, local, sample_points(vertices))
 
 
+def test_the_engine_snapshot_counts_frames_as_frames_applied(client: Client) -> None:
+    """`field_stats["frame"]` is the engine's count of frames since the registration, not the sender's frame
+    number (twenty-eighth outside check: 1 against 101, which no doc said); docs/service.md tells a reader to
+    compare it with `frames_applied`, which this holds to."""
+    vertices, faces = meshes.sphere()
+    remote = client.register("counted", vertices, faces, depth=4, frame=100)
+    for step in (1, 2):
+        remote.update(vertices * (1.0 + 0.01 * step))
+    wait_until(lambda: remote.info().field_stats.get("frame") == 2, timeout=10, what="the snapshot of frame 102")
+    info = remote.info()
+    assert (info.frame, info.frames_applied, info.field_info["frame"]) == (102, 2, 2)
+
+
 def test_float64_coordinates_far_from_the_origin_keep_their_precision(client: Client) -> None:
     """The protocol turned every coordinate into float32, so a mesh 1e5 from the origin given as float64 was
     exact to 4.7e-8 of its diagonal in-process and to 2.7e-3 through the service. Float64 vertices and points

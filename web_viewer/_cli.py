@@ -25,7 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--namespace", default="badf", help="the workers' key-expression prefix (default: badf)")
     parser.add_argument("--config", default=None, metavar="FILE", help="Zenoh JSON5 config file (TLS, authentication)")
-    parser.add_argument("--object", default=None, metavar="NAME", help="object to show first (default: the first)")
+    parser.add_argument("--object", default=None, metavar="NAME", help="object to show first (default: the first by name)")
     parser.add_argument(
         "--resolution", type=int, default=256, choices=RESOLUTIONS, help="slice grid, per side (default: 256)"
     )
@@ -35,7 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-mesh-hz", type=float, default=10.0, help="most mesh fetches per second (default: 10)")
     parser.add_argument("--max-info-hz", type=float, default=20.0,
                         help="most info polls (frame, stats) per second (default: 20)")
-    parser.add_argument("--timeout", type=float, default=10.0, metavar="SECONDS", help="longest wait for a worker")
+    parser.add_argument("--timeout", type=float, default=10.0, metavar="SECONDS",
+                        help="longest wait for a worker (default: 10)")
 
 
 def settings_from(args: argparse.Namespace) -> ViewerSettings:

@@ -16,6 +16,8 @@ import threading
 
 import warp as wp
 
+from badf.server._environment import cpu_threads_setting
+
 # Items per chunk below which a launch is not shared out (a launch costs tens of microseconds), and chunks per
 # thread, so that chunks of long walks (corners far from the surface) do not leave the other threads idle.
 MIN_CHUNK = 2048
@@ -27,14 +29,8 @@ COUNTS_ROOM = MAX_CHUNKS + 1  # a count per chunk, and a zero
 def cpu_threads() -> int:
     """Threads the CPU back-end's launches are shared out over: $BADF_CPU_THREADS if set (1 turns it off), else
     the cores this process may run on."""
-    value = os.environ.get("BADF_CPU_THREADS", "").strip()
-    if value:
-        try:
-            threads = int(value)
-        except ValueError:
-            raise ValueError(f"BADF_CPU_THREADS must be a whole number of threads, got {value!r}") from None
-        if threads < 1:
-            raise ValueError(f"BADF_CPU_THREADS must be at least 1, got {threads}")
+    threads = cpu_threads_setting()
+    if threads is not None:
         return threads
     try:
         return len(os.sched_getaffinity(0))
