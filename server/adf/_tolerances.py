@@ -68,8 +68,8 @@ SURFACE_SNAP = 1.0e-6
 WINDING_FAR_FIELD = 2.0
 WINDING_FAR_FIELD_SAH = 2.25
 
-# An open mesh's winding numbers are corrected by its rim (`_sign.rim_fans`: fans C that close the faces' boundary
-# chain, so w_S + w_C is a whole number off the surface). Where a walk's |w| lies within RIM_DOUBT of 1/2 (its
+# An open mesh's winding numbers in queries are corrected by its rim (`_sign.rim_fans`: fans C that close the faces'
+# boundary chain, so w_S + w_C is a whole number off the surface). Where a walk's |w| lies within RIM_DOUBT of 1/2 (its
 # expansions erred by up to 0.06 on the shared meshes, and 0.09 on frames that run through themselves), w becomes
 # round(w + w_C) - w_C with w_C summed exactly, which is the oracle's w wherever the walk erred by less than
 # RIM_TRUST; where w + w_C lies farther than that from a whole number the walk's w stays. A rim of more fan
