@@ -43,7 +43,7 @@ def find_mesh(name: str) -> pathlib.Path:
 def deform(vertices: np.ndarray, t: float, amplitude: float = 0.01) -> np.ndarray:
     """A smooth, time-varying wobble of `amplitude` bounding-box diagonals: a stand-in for an animation."""
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
-    diag = float(np.linalg.norm(hi - lo))
+    diag = float(np.linalg.norm((hi - lo).astype(np.float64)))
     phase = 2.0 * np.pi * ((vertices - lo) / np.maximum(hi - lo, 1e-30) + t)
     return (vertices + amplitude * diag * np.sin(phase[:, [1, 2, 0]])).astype(np.float32)
 

@@ -146,7 +146,7 @@ def measure_queries(field, vertices, faces, *, device: str, repeat: int, count: 
         times = _time_wall(lambda _: results.__setitem__(mode, field.query(points, mode=mode)), device, repeat)
         out[f"query_{mode}_ms"] = round(_median(times), 4)
     error = np.abs(results["adf"].distance - results["exact"].distance)
-    diag = float(np.linalg.norm(hi - lo))
+    diag = float(np.linalg.norm((hi - lo).astype(np.float64)))  # float32's square of a 1e-39 extent is 0
     out["query_points"] = count
     out["adf_vs_exact_max_error_diag"] = float(error.max() / diag)
     out["adf_vs_exact_mean_error_diag"] = float(error.mean() / diag)

@@ -179,8 +179,8 @@ class Client:
     def _register(self, request: RegisterRequest, *, worker: str | None, timeout: float | None) -> ObjectInfo:
         target = self._place(request.name, replace=request.replace, worker=worker, timeout=timeout)
         info = self._ask(self.keys.worker_register(target), request, ObjectInfo, timeout=timeout, worker=target)
-        if not request.replace:
-            self._settle_a_double_registration(info, timeout)
+        # replace=True too: placed as a new name where none existed, two such registrations race alike (a recheck)
+        self._settle_a_double_registration(info, timeout)
         return info
 
     def _settle_a_double_registration(self, mine: ObjectInfo, timeout: float | None) -> None:

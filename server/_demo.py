@@ -225,7 +225,7 @@ def _run_morph(client, args, source, depth: int, stop: _StopFlag) -> int:
     rest = frames_of(0)
     rng = np.random.default_rng(0)
     lo, hi = rest.min(axis=0), rest.max(axis=0)
-    diag = float(np.linalg.norm(hi - lo))
+    diag = float(np.linalg.norm((hi - lo).astype(np.float64)))  # float32's square of a 1e-39 mesh's extent is 0
     obj = client.register(name, rest, faces, depth=depth, sign="auto", replace=True)
     print(f"registered {name!r}: {len(rest)} vertices, {len(faces)} triangles; querying {args.points} points a frame")
     frame_times, update_times, query_times, errors = [], [], [], []
@@ -238,7 +238,7 @@ def _run_morph(client, args, source, depth: int, stop: _StopFlag) -> int:
             obj.update(vertices)
             updated = time.perf_counter()
             centre = (vertices.max(axis=0) + vertices.min(axis=0)) / 2
-            points = (centre + (rng.random((args.points, 3)) - 0.5) * (hi - lo) * 1.3).astype(np.float32)
+            points = (centre + (rng.random((args.points, 3)) - 0.5) * (hi - lo) * 1.3).astype(vertices.dtype)
             result = obj.query(points, mode="adf", outputs=("distance", "normal"))
             done = time.perf_counter()
             if frame % 10 == 1:  # the ADF against exact queries on a sample, every tenth frame
@@ -279,7 +279,8 @@ def _morph_source(args):
 
 
 def _wobble(vertices: np.ndarray, frame: int) -> np.ndarray:
-    """A smooth, travelling deformation: radial bulges about the centre, a few percent of the size."""
+    """A smooth, travelling deformation: radial bulges about the centre, a few percent of the size; in the mesh's
+    own precision (float64 stays float64: far from the origin float32 would weld its vertices)."""
     centre = (vertices.max(axis=0) + vertices.min(axis=0)) / 2
     offset = vertices - centre
     size = float(np.max(np.linalg.norm(offset, axis=1))) or 1.0
@@ -290,7 +291,7 @@ def _wobble(vertices: np.ndarray, frame: int) -> np.ndarray:
     c, s = np.cos(twist), np.sin(twist)
     x, y = offset[:, 0] * c - offset[:, 1] * s, offset[:, 0] * s + offset[:, 1] * c
     moved = np.stack([x, y, offset[:, 2]], axis=1) * (1.0 + bulge)[:, None]
-    return (centre + moved).astype(np.float32)
+    return (centre + moved).astype(vertices.dtype)
 
 
 def _key_safe(name: str) -> str:

@@ -71,13 +71,16 @@ def _check_engine_takes(path: pathlib.Path, frames: np.ndarray, faces: np.ndarra
     if largest > MAX_COORDINATE:
         raise MeshFileError(f"{path}: a coordinate of {largest:g}; the engine takes coordinates within "
                             f"+-{MAX_COORDINATE:g}")
-    used = frames[0][np.unique(faces)].astype(np.float64)
-    extent = float(np.max(used.max(axis=0) - used.min(axis=0)))
-    if extent == 0.0:
+    used = frames[:, np.unique(faces)].astype(np.float64)
+    extents = np.max(used.max(axis=1) - used.min(axis=1), axis=1)  # each frame's largest side
+    if extents[0] == 0.0:
         raise MeshFileError(f"{path}: the vertices its faces use all coincide (the mesh has zero extent)")
-    if extent < MIN_EXTENT:
-        raise MeshFileError(f"{path}: the mesh's extent is {extent:.3g}; the engine refuses meshes smaller than "
-                            f"{MIN_EXTENT:g} (scale it up)")
+    # a later frame collapsed to a point is taken (the field keeps its cube), one merely tiny is not
+    tiny = np.flatnonzero((extents > 0.0) & (extents < MIN_EXTENT))
+    if len(tiny):
+        where = f" in frame {tiny[0]}" if frames.shape[0] > 1 else ""
+        raise MeshFileError(f"{path}: the mesh's extent{where} is {extents[tiny[0]]:.3g}; the engine refuses meshes "
+                            f"smaller than {MIN_EXTENT:g} (scale it up)")
 
 
 def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:

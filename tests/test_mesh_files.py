@@ -71,6 +71,8 @@ def test_unreadable_files_are_named_with_what_is_wrong(box, tmp_path) -> None:
         frames = np.stack([box.vertices, box.vertices * 1e39]).astype(np.float32)  # inf in the second frame
     np.savez(tmp_path / "huge.npz", vertices=frames, faces=box.faces)
     np.savez(tmp_path / "tiny.npz", vertices=box.vertices * 1e-41, faces=box.faces)  # below the engine's 1e-40
+    late = np.stack([box.vertices, box.vertices * 0.0, box.vertices * 1e-42])  # a point is taken, then too small
+    np.savez(tmp_path / "tiny-later.npz", vertices=late, faces=box.faces)
     np.savez(tmp_path / "far.npz", vertices=box.vertices + 1e19, faces=box.faces)  # past the engine's 1e18
     np.savez(tmp_path / "point.npz", vertices=np.zeros((3, 3)), faces=[[0, 1, 2]])
     cases = {
@@ -88,6 +90,7 @@ def test_unreadable_files_are_named_with_what_is_wrong(box, tmp_path) -> None:
         tmp_path / "far.npz": "a coordinate of 1e+19; the engine takes coordinates within +-1e+18",
         tmp_path / "point.npz": "the vertices its faces use all coincide",
         tmp_path / "tiny.npz": "the mesh's extent is 3e-41; the engine refuses meshes smaller than 1e-40",
+        tmp_path / "tiny-later.npz": "the mesh's extent in frame 2 is 3e-42; the engine refuses",
     }
     for path, message in cases.items():
         with pytest.raises(MeshFileError, match=re.escape(message)) as raised:

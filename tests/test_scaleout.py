@@ -425,7 +425,7 @@ def test_a_name_registered_on_two_workers_at_once_is_kept_by_one(endpoint: str, 
     served by both: every handle's requests met the other worker's refusals (twenty-eighth outside check: all of
     them failed, "registered ... since deleted or replaced"). Now the registration on the lowest worker id keeps
     the name and the other is withdrawn. The race is made here by a client whose placement check misses the
-    other's registration, as one made at the same moment does."""
+    other's registration, as one made at the same moment does; with replace=True as without."""
     vertices, faces = meshes.load("sphere")
     points = sample_points(vertices, 60)
     with (
@@ -450,7 +450,11 @@ def test_a_name_registered_on_two_workers_at_once_is_kept_by_one(endpoint: str, 
             second.register("again", vertices * np.float32(2.0), faces, depth=3, worker="right")
         assert [(info.name, info.worker) for info in first.objects()] == [("again", "left"), ("twice", "left")]
         assert_answers_like(kept, DistanceField(vertices, faces, depth=3, device="cpu"), points)
-        for name in ("again", "twice"):
+        # replace=True of a name nobody holds is placed as a new one, and races alike (re-check of the same day)
+        first.register("thrice", vertices, faces, depth=3, worker="right", replace=True)
+        second.register("thrice", vertices, faces, depth=3, worker="left", replace=True)
+        assert [info.worker for info in first.objects() if info.name == "thrice"] == ["left"]
+        for name in ("again", "thrice", "twice"):
             first.object(name).delete()
 
 
