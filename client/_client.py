@@ -179,7 +179,7 @@ class Client:
     def _register(self, request: RegisterRequest, *, worker: str | None, timeout: float | None) -> ObjectInfo:
         target = self._place(request.name, replace=request.replace, worker=worker, timeout=timeout)
         info = self._ask(self.keys.worker_register(target), request, ObjectInfo, timeout=timeout, worker=target)
-        # replace=True too: placed as a new name where none existed, two such registrations race alike (a recheck)
+        # after replace=True too: where the name was not there, it was placed as a new one, and races alike
         self._settle_a_double_registration(info, timeout)
         return info
 

@@ -71,8 +71,9 @@ def _check_engine_takes(path: pathlib.Path, frames: np.ndarray, faces: np.ndarra
     if largest > MAX_COORDINATE:
         raise MeshFileError(f"{path}: a coordinate of {largest:g}; the engine takes coordinates within "
                             f"+-{MAX_COORDINATE:g}")
-    used = frames[:, np.unique(faces)].astype(np.float64)
-    extents = np.max(used.max(axis=1) - used.min(axis=1), axis=1)  # each frame's largest side
+    used = frames[:, np.unique(faces)]
+    # each frame's largest side, in the frames' own precision (no float64 copy of a long sequence), compared in float64
+    extents = np.max((used.max(axis=1) - used.min(axis=1)).astype(np.float64), axis=1)
     if extents[0] == 0.0:
         raise MeshFileError(f"{path}: the vertices its faces use all coincide (the mesh has zero extent)")
     # a later frame collapsed to a point is taken (the field keeps its cube), one merely tiny is not
