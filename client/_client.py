@@ -29,6 +29,7 @@ from badf.protocol import (
     AccessDeniedError,
     BadfError,
     BvhShape,
+    RigidMode,
     InvalidOptionError,
     Deleted,
     DeleteRequest,
@@ -159,6 +160,7 @@ class Client:
         halo: int = 1,
         region=None,
         bvh: BvhShape = "auto",
+        rigid: RigidMode = "auto",
         frame: int = 0,
         replace: bool = False,
         worker: str | None = None,
@@ -168,10 +170,11 @@ class Client:
 
         Placed on `worker`, or on the least-loaded worker; an existing object of that name is an
         ObjectExistsError unless `replace`. `frame` numbers the initial vertices. Blocks until the worker
-        has built the field; see ObjectOptions for depth, sign, band, coherence, refine, halo, region and bvh.
+        has built the field; see ObjectOptions for depth, sign, band, coherence, refine, halo, region, bvh and
+        rigid.
         """
         options = ObjectOptions(depth=depth, sign=sign, band=band, coherence=coherence, refine=refine, halo=halo,
-                                region=region, bvh=bvh)
+                                region=region, bvh=bvh, rigid=rigid)
         request = RegisterRequest(name, vertices, faces, options, frame=frame, replace=replace)
         info = self._register(request, worker=worker, timeout=timeout)
         return RemoteObject(self, info, vertices=_owned(request.vertices, vertices), faces=_owned(request.faces, faces))

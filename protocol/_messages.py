@@ -46,6 +46,8 @@ Axis = Literal["x", "y", "z"]
 SIGN_METHODS: tuple[str, ...] = get_args(SignMethod)
 REFINE_METHODS: tuple[str, ...] = get_args(RefineMethod)
 BVH_SHAPES: tuple[str, ...] = get_args(BvhShape)
+RigidMode = Literal["auto", "off"]
+RIGID_MODES: tuple[str, ...] = get_args(RigidMode)
 QUERY_MODES: tuple[str, ...] = get_args(QueryMode)
 QUERY_OUTPUTS: tuple[str, ...] = get_args(QueryOutput)
 AXES: tuple[str, ...] = get_args(Axis)
@@ -382,7 +384,9 @@ class ObjectOptions:
     the mesh's coordinates (None: everywhere): the octree is refined only where it needs, and ADF queries
     outside it are answered exactly. bvh: the BVH's shape ("morton": linked on the device at once; "sah": made
     by the surface area heuristic on the worker's host at registration, which takes longer, for faster frames;
-    "auto": sah on a CPU worker, morton on a GPU; the object's info says which).
+    "auto": sah on a CPU worker, morton on a GPU; the object's info says which). rigid: "auto" keeps the field
+    for a frame that only turns and shifts the whole mesh and moves the queries into it instead (no rebuild);
+    "off" rebuilds every frame.
     The engine's docstring (badf.server.adf.DistanceField) has the details.
     """
 
@@ -394,6 +398,7 @@ class ObjectOptions:
     halo: int = 1
     region: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     bvh: BvhShape = "auto"
+    rigid: RigidMode = "auto"
 
     def __post_init__(self) -> None:
         owner = "ObjectOptions"
@@ -407,12 +412,14 @@ class ObjectOptions:
         if self.region is not None:
             _set(self, "region", _check_box(owner, "region", self.region))
         _check_choice(owner, "bvh", self.bvh, BVH_SHAPES)
+        _check_choice(owner, "rigid", self.rigid, RIGID_MODES)
 
     def to_json(self) -> dict[str, Any]:
         return {
             "depth": self.depth, "sign": self.sign, "band": self.band, "coherence": self.coherence,
             "refine": self.refine, "halo": self.halo,
             "region": None if self.region is None else [*self.region[0], *self.region[1]], "bvh": self.bvh,
+            "rigid": self.rigid,
         }  # fmt: skip
 
     @classmethod
@@ -426,6 +433,7 @@ class ObjectOptions:
             halo=fields.integer("halo"),
             region=_box_of(fields.items("region", (int, float), "numbers", optional=True)),
             bvh=fields.text("bvh", optional=True) or "morton",  # type: ignore[arg-type]  # absent: a client before it
+            rigid=fields.text("rigid", optional=True) or "off",  # type: ignore[arg-type]  # likewise
         )
 
 

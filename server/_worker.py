@@ -137,6 +137,7 @@ def engine_field_builder(device: str | None) -> tuple[FieldBuilder, str]:
             halo=options.halo,
             region=options.region,
             bvh=options.bvh,
+            rigid=options.rigid,
             device=resolved,
         )
 

@@ -495,6 +495,18 @@ def test_a_region_of_interest_is_a_box_of_finite_numbers() -> None:
             decode(pack(MessageKind.REGISTER, metadata, [VERTICES, FACES]), RegisterRequest)
 
 
+def test_the_rigid_mode_goes_on_the_wire_and_an_older_clients_request_reads_as_off() -> None:
+    request = RegisterRequest("a", VERTICES, FACES, ObjectOptions(rigid="off"))
+    assert decode(encode(request), RegisterRequest).options.rigid == "off"
+    assert ObjectOptions().rigid == "auto"
+    with pytest.raises(InvalidOptionError, match="ObjectOptions.rigid must be one of"):
+        ObjectOptions(rigid="yes")
+    metadata = RegisterRequest("a", VERTICES, FACES, ObjectOptions()).metadata()
+    assert decode(pack(MessageKind.REGISTER, metadata, [VERTICES, FACES]), RegisterRequest).options.rigid == "auto"
+    del metadata["options"]["rigid"]  # a client from before the option: every frame rebuilt, as it was
+    assert decode(pack(MessageKind.REGISTER, metadata, [VERTICES, FACES]), RegisterRequest).options.rigid == "off"
+
+
 def test_the_bvh_shape_goes_on_the_wire_and_an_older_clients_request_reads_as_morton() -> None:
     request = RegisterRequest("a", VERTICES, FACES, ObjectOptions(bvh="sah"))
     assert decode(encode(request), RegisterRequest).options.bvh == "sah"

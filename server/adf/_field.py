@@ -49,6 +49,7 @@ from badf.server.adf._inputs import (
     check_resolution,
 )
 from badf.server.adf._octree import Octree
+from badf.server.adf._rigid import RIGID_MODES, Pose, RigidTest
 from badf.server.adf._slice import AXES, Slice, SliceCells, plane_grid
 from badf.server.adf._sign import (
     SIGN_METHODS,
@@ -77,6 +78,7 @@ from badf.server.adf._tolerances import (
     REDOMAIN_KEEP_SIDE,
     REDOMAIN_MIN_FILL,
     REDOMAIN_REFIT_ROOM,
+    RIGID_TOLERANCE,
     SOLID_BESIDE_SAMPLE,
     SOLID_WATCH_SAMPLE,
 )
@@ -265,6 +267,8 @@ class _Counters:
     # that could not be planned from an estimate (refine="centroid", an area the first try's caps cut, or too
     # many corners to plan for)
     graph_captures: int = 0
+    rigid_frames: int = 0  # frames answered by moving the queries into the field of an earlier frame (rigid="auto")
+    rigid_rebuilds: int = 0  # fields rebuilt for such a frame because a slice or a tool needed it in place
 
 
 class DistanceField:
@@ -293,6 +297,11 @@ class DistanceField:
             heuristic, made once on the host at registration and kept, its boxes refit every frame: faster
             frames and exact queries, for a registration that takes longer), or "auto" (sah on the CPU
             back-end, where it pays within a few frames; morton on CUDA). docs/engine.md, "The BVH's shape".
+        rigid: "auto" (the default) keeps the field for a frame that only turns and shifts the whole mesh (every
+            used vertex within RIGID_TOLERANCE, 1e-6, of the bounding box's diagonal of one rigid motion of the
+            last rebuilt frame) and answers its queries by moving them into it: no refit, no rebuild, no device
+            work. A slice or the corner and cell lists rebuild it in place first. "off" rebuilds every frame.
+            Not with a region, which is fixed in the mesh's coordinates. docs/engine.md, "Rigid frames".
         device: "cpu", "cuda", "cuda:N", or None for the first GPU if there is one, else the CPU.
 
     Raises:
@@ -313,6 +322,7 @@ class DistanceField:
         region=None,
         bvh: Literal["auto", "morton", "sah"] = "auto",
         device: str | None = None,
+        rigid: Literal["auto", "off"] = "auto",
     ):
         v = as_vertices(vertices)
         f = as_faces(faces, len(v))
@@ -324,6 +334,7 @@ class DistanceField:
         self._halo = check_halo(halo)
         self._region = check_region(region)
         self._bvh_requested = check_choice(bvh, "bvh", BVH_SHAPES)
+        self._rigid_mode = check_choice(rigid, "rigid", RIGID_MODES)
         self._device = _resolve_device(device)
         self._bvh_shape = resolve_shape(self._bvh_requested, self._device.is_cpu)
         if self._device.is_cpu:
@@ -366,6 +377,12 @@ class DistanceField:
                             t.nonmanifold_edges, t.inconsistent_edges)
         self._vertex_count, self._face_count = len(v), len(f)
         self._frame = 0
+        # rigid frames are tested against the last rebuilt frame (the reference); a region stays where it is in
+        # the mesh's coordinates, so a mesh that moves through it needs its field rebuilt
+        self._rigid_test = RigidTest(v, self._used) if self._rigid_mode == "auto" and self._region is None else None
+        self._pose: Pose | None = None  # the current frame's pose from the reference frame, which the field is of
+        self._posed_vertices: np.ndarray | None = None  # the current frame, kept to rebuild it in place on demand
+        self._keep_reference(v, lo, hi)
         self._counters = _Counters()
 
         # the first frame's cell set is sized from the surface area it may refine: a region's share of it (a
@@ -448,10 +465,34 @@ class DistanceField:
     @_on_device
     def update(self, vertices) -> int:
         """Replace the vertex positions (same count and topology) and rebuild the field; returns the frame.
+        A rigid frame (rigid="auto") keeps the field and its pose from it instead.
 
         Raises InvalidInputError (and keeps the last good frame) on a wrong shape or non-finite value.
         """
         v = as_vertices(vertices, expected_count=self._vertex_count)
+        if self._rigid_test is not None and self._failed_update is None:
+            wall = time.perf_counter()
+            pose = self._rigid_test.pose(self._reference, v, self._rigid_tolerance)
+            if pose is not None:
+                return self._take_rigid_frame(v, pose, wall)
+        self._rebuild(v)
+        self._frame += 1
+        self._counters.updates += 1
+        return self._frame
+
+    def _take_rigid_frame(self, v: np.ndarray, pose: Pose, wall: float) -> int:
+        """Keep the field of the reference frame for frame v, which is the reference moved by `pose`."""
+        identity = bool(np.array_equal(pose.rotation, np.eye(3)) and not pose.translation.any())
+        self._pose = None if identity else pose
+        self._posed_vertices = None if identity else np.array(v)  # the caller may write into theirs
+        self._frame += 1
+        self._counters.updates += 1
+        self._counters.rigid_frames += 1
+        self._counters.last_update_wall_ms = (time.perf_counter() - wall) * 1e3
+        return self._frame
+
+    def _rebuild(self, v: np.ndarray) -> None:
+        """Rebuild the field for checked vertices v, which become the reference frame of later rigid ones."""
         lo, hi = self._bounds(v)
         moved = self._failed_update is not None or not self._domain.holds(lo, hi)
         if moved:
@@ -469,11 +510,24 @@ class DistanceField:
             # through, and that frame is rebuilt in full, measured, without a graph.
             self._failed_update = f"{type(error).__name__}: {error}"
             self._planned, self._graph, self._graph_candidate = False, None, None
+            self._pose = self._posed_vertices = None
             raise
         self._failed_update = None
-        self._frame += 1
-        self._counters.updates += 1
-        return self._frame
+        self._pose = self._posed_vertices = None
+        self._keep_reference(v, lo, hi)
+
+    def _keep_reference(self, v: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Keep a rebuilt frame (a copy: the caller may write into theirs) for the test of later rigid frames."""
+        if self._rigid_test is not None:
+            self._reference = np.array(v)
+            self._rigid_tolerance = RIGID_TOLERANCE * float(np.linalg.norm(hi - lo))
+
+    def _in_place(self) -> None:
+        """Rebuild the field where the current frame is, if it is a rigid frame's (slices and the corner and cell
+        lists are in the world's axes); the frame's number stays."""
+        if self._pose is not None:
+            self._rebuild(self._posed_vertices)
+            self._counters.rigid_rebuilds += 1
 
     @_on_device
     def query(
@@ -494,7 +548,10 @@ class DistanceField:
         names = check_outputs(outputs)
         p = as_points(points)
         start_time = time.perf_counter()
-        result = self._answer(p, mode, names)
+        if self._pose is None:
+            result = self._answer(p, mode, names)
+        else:
+            result = self._answer_posed(p, mode, names)
         self._counters.queries += 1
         self._counters.query_points += len(p)
         self._counters.last_query_ms = (time.perf_counter() - start_time) * 1e3
@@ -551,6 +608,22 @@ class DistanceField:
             setattr(result, name, arrays[name])
         return result
 
+    def _answer_posed(self, p: np.ndarray, mode: QueryMode, names: tuple[QueryOutput, ...]) -> QueryResult:
+        """A rigid frame's answers: the points moved into the reference frame's field, its closest points and
+        normals moved back out (distances and faces are the same in both)."""
+        pose = self._pose
+        computed = (*names, "face") if "closest_point" in names and "face" not in names else names
+        result = self._answer(pose.to_reference(p), mode, computed)
+        if result.closest_point is not None:
+            nowhere = result.face < 0  # beyond the band: (0, 0, 0), as in the reference frame
+            result.closest_point = pose.points_to_world(result.closest_point)
+            result.closest_point[nowhere] = 0.0
+        if result.normal is not None:
+            result.normal = pose.vectors_to_world(result.normal)
+        if "face" not in names:
+            result.face = None
+        return result
+
     @_on_device
     def slice(
         self,
@@ -573,6 +646,7 @@ class DistanceField:
             raise InvalidInputError(f"position must lie within +-{MAX_COORDINATE:g}, got {position:g}")
         rows, cols = check_resolution(resolution)
         max_level = self._depth if max_level is None else check_level(max_level, self._depth)
+        self._in_place()
         centre, half = self._domain.centre, self._domain.side / 2.0
         u_axis, v_axis = [a for a in range(3) if a != axis_index]
         u_range = (float(centre[u_axis] - half), float(centre[u_axis] + half))
@@ -598,6 +672,10 @@ class DistanceField:
     @property
     def frame(self) -> int:
         return self._frame
+
+    def _domain_centre(self) -> np.ndarray:
+        centre = self._domain.centre
+        return centre if self._pose is None else self._pose.rotation @ centre + self._pose.translation
 
     def _check_field(self) -> None:
         if self._failed_update is not None:
@@ -649,8 +727,12 @@ class DistanceField:
             # fans closing the faces' boundary, which make winding numbers near 1/2 exact (0: none needed or no
             # sign; None: a rim longer than RIM_LIMIT, left to the walk)
             "rim_fans": self._rim_fans,
-            "domain": {"centre": self._domain.centre.tolist(), "side": self._domain.side,
+            # the cube the octree covers: where the current frame has it (turned by the pose's rotation, if any)
+            "domain": {"centre": self._domain_centre().tolist(), "side": self._domain.side,
                        "finest_cell": self._domain.side / (1 << self._depth)},
+            "rigid": self._rigid_mode if self._rigid_test is not None else "off",
+            # the current frame's rigid motion from the frame the field was built for (None: built for this one)
+            "pose": None if self._pose is None else self._pose.as_dict(),
             "frame": self._frame,
         }
 
@@ -688,6 +770,8 @@ class DistanceField:
             "replans": c.replans,
             "measured_frames": c.measured_frames,
             "graph_captures": c.graph_captures,
+            "rigid_frames": c.rigid_frames,
+            "rigid_rebuilds": c.rigid_rebuilds,
             "queries": c.queries,
             "query_points": c.query_points,
             "slices": c.slices,
@@ -905,6 +989,7 @@ class DistanceField:
     @_on_device
     def corner_samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(positions (C, 3) float64 in world coordinates, signed distances (C,), nearest faces (C,))."""
+        self._in_place()
         keys = self._octree.corner_keys.numpy()[: self._octree.corner_count]
         lattice = _decode_morton(keys)
         cell = self._domain.side / (1 << self._depth)
@@ -918,6 +1003,7 @@ class DistanceField:
     @_on_device
     def octree_cells(self) -> tuple[np.ndarray, np.ndarray]:
         """(levels (K,), integer cell coordinates (K, 3) at each node's level) of every octree node."""
+        self._in_place()
         keys = self._octree.node_keys.numpy()[: self._octree.node_count]
         levels = (keys >> 32).astype(np.int64)
         return levels, _decode_morton(keys & 0xFFFFFFFF).astype(np.int64)

@@ -118,6 +118,14 @@ FAR_POINT = 2.0**20
 # 1e-6). Far points moved in (FAR_POINT) are still clamped at the band asked for, on the host.
 MAX_KERNEL_BAND = 2.0**44
 
+# A frame is rigid (rigid="auto": the field is kept and queries are moved into it, _rigid.py) where one rotation and
+# translation carry every used vertex of the last rebuilt frame to within this fraction of its bounding box's
+# diagonal of the frame's: a tenth of the 1e-5 that exact queries keep. float32 frames pass it within about 10
+# mesh sizes of the origin (their rounding there is about 6e-8 of the coordinates); float64 ones anywhere.
+RIGID_TOLERANCE = 1.0e-6
+# Vertices the pose is fitted to and checked at first (with each axis's extremes), before every vertex is checked.
+RIGID_SAMPLE = 64
+
 # Points are sent to the device in batches of at most this many, so memory stays bounded.
 QUERY_CHUNK = 1 << 20
 
