@@ -156,6 +156,73 @@ def measure_queries(field, vertices, faces, *, device: str, repeat: int, count: 
     return out
 
 
+def _rigid_motion(vertices: np.ndarray, k: int):
+    """Frame k of a rigid motion, as a function of (P, 3) points: turned 0.05 k radians about (1, 1, 1) about the
+    mesh's box's centre and carried 0.1 k of the box's extent along x, in float64."""
+    v = vertices.astype(np.float64)
+    centre = (v.min(axis=0) + v.max(axis=0)) / 2
+    angle, axis = 0.05 * k, np.ones(3) / np.sqrt(3.0)
+    cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rotation = np.eye(3) + np.sin(angle) * cross + (1.0 - np.cos(angle)) * (cross @ cross)
+    shift = centre + [0.1 * k * float(np.max(v.max(axis=0) - v.min(axis=0))), 0.0, 0.0]
+    return lambda points: (np.asarray(points, np.float64) - centre) @ rotation.T + shift
+
+
+def measure_rigid(vertices, faces, *, device: str, depth: int, repeat: int, count: int = 65536) -> dict:
+    """Frames that only turn and shift the mesh, taken as rigid (rigid="auto": the field kept, the queries moved
+    into it) and rebuilt (rigid="off"): each frame's wall time, then queries of `count` points over the last
+    frame's box, and their error against the float64 oracle on the moved mesh; and the host's test of a deforming
+    frame, which every frame of a deforming object pays under rigid="auto"."""
+    from badf.server.adf import DistanceField
+    from badf.server.adf._rigid import RigidTest
+
+    frames = [_rigid_motion(vertices, k)(vertices) for k in range(1, repeat + 1)]
+    last = frames[-1]
+    # points spread over the mesh's own box, carried with it: the same points about the body for both fields
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    carried = _rigid_motion(vertices, repeat)(np.random.default_rng(0).uniform(lo, hi, size=(count, 3)))
+    points = carried.astype(np.float32)
+    truth = signed_distance(points[:ORACLE_SAMPLE], last, faces)
+    rows = {}
+    for mode in ("auto", "off"):
+        field = DistanceField(vertices, faces, depth=depth, device=device, rigid=mode)
+        field.update(_rigid_motion(vertices, repeat + 5)(vertices))  # warm-up: compiles, and a frame of its own
+        field.update(vertices)
+        before = field.stats()["rigid_frames"]
+        updates = [_time_wall(lambda _: field.update(frame), device, 1)[0] for frame in frames]
+        row = {"update_wall_ms": round(_median(updates), 4), "rigid_frames": field.stats()["rigid_frames"] - before}
+        for query_mode in ("adf", "exact"):
+            answers = {}
+            field.query(points, mode=query_mode)
+            times = _time_wall(lambda _: answers.__setitem__("r", field.query(points, mode=query_mode)), device, repeat)
+            row[f"query_{query_mode}_ms"] = round(_median(times), 4)
+            row[f"{query_mode}_vs_oracle"] = errors_against(answers["r"].distance[:ORACLE_SAMPLE], truth, last)
+        rows[mode] = row
+        del field
+    test = RigidTest(vertices, None)
+    deforming = deform(vertices, 0.02)
+    diagonal = float(np.linalg.norm((vertices.max(axis=0) - vertices.min(axis=0)).astype(np.float64)))
+    tests = []
+    for _ in range(max(repeat, 20)):
+        start = time.perf_counter()
+        test.pose(vertices, deforming, 1e-6 * diagonal)
+        tests.append((time.perf_counter() - start) * 1e3)
+    return {"depth": depth, "frames": repeat, "query_points": count, "rigid": rows["auto"], "rebuilt": rows["off"],
+            "deforming_frame_test_ms": round(_median(tests), 4)}
+
+
+def print_rigid(rigid: dict) -> None:
+    print_table(f"rigid frames (turned and shifted, float64), depth {rigid['depth']}: medians of {rigid['frames']} "
+                f"frames and of the queries of {rigid['query_points']:,} points over the mesh's box, carried with it; errors against the float64 oracle, "
+                "max diagonals",
+                ["rigid", "frames taken as rigid", "update wall ms", "adf query ms", "exact query ms", "adf error",
+                 "exact error"],
+                [[name, r["rigid_frames"], r["update_wall_ms"], r["query_adf_ms"], r["query_exact_ms"],
+                  f"{r['adf_vs_oracle']['max_error_diag']:.2e}", f"{r['exact_vs_oracle']['max_error_diag']:.2e}"]
+                 for name, r in (("auto", rigid["rigid"]), ("off (rebuilt)", rigid["rebuilt"]))])
+    print(f"  the host's test of a deforming frame under rigid=\"auto\": {rigid['deforming_frame_test_ms']} ms")
+
+
 def measure_dense_baseline(vertices, faces, *, device: str, repeat: int, resolution: int = 129) -> dict:
     """wp.Mesh (default BVH) + mesh_query_point_sign_normal at every point of a resolution^3 grid."""
     import warp as wp
@@ -660,6 +727,7 @@ def run(args: argparse.Namespace) -> int:
     baseline = measure_dense_baseline(vertices, faces, device=device, repeat=repeat, resolution=lattice)
     report["dense_baseline"] = baseline
     report["allocations"] = measure_allocations(vertices, faces, device=device, depth=args.depth)
+    report["rigid"] = measure_rigid(vertices, faces, device=device, depth=args.depth, repeat=repeat)
     first = report["configurations"][0]
     print_table(
         f"engine on {report['device']}, {args.mesh} ({len(faces)} triangles), median of {repeat}",
@@ -693,6 +761,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"device memory held, by the allocator's count: the field {a['field_allocated_bytes'] / 2**20:.2f} MiB "
               f"(its own count {a['field_counted_bytes'] / 2**20:.2f}); the dense baseline "
               f"{a['dense_baseline_allocated_bytes'] / 2**20:.2f} MiB (wp.Mesh, its inputs and the grid)")
+    print_rigid(report["rigid"])
     if args.out:
         with open(args.out, "w") as handle:
             json.dump(report, handle, indent=2)

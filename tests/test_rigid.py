@@ -91,6 +91,29 @@ def test_a_turned_and_shifted_frame_keeps_the_field_and_answers_for_where_the_me
     assert field.info()["domain"]["side"] == DistanceField(vertices, faces, depth=5, device=device).info()["domain"]["side"]
 
 
+def test_a_rigid_frames_points_far_away_and_sent_as_float32_are_answered_as_the_oracle_answers(device: str) -> None:
+    vertices, faces = meshes.torus()
+    vertices = vertices.astype(np.float64)
+    field = DistanceField(vertices, faces, depth=4, device=device)
+    moved = vertices @ _rotation([2, -1, 1], 2.0).T + [40.0, -3.0, 12.0]
+    field.update(moved)
+    assert field.info()["pose"] is not None
+    rng = np.random.default_rng(9)
+    direction = rng.normal(size=(200, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    far = moved.mean(axis=0) + direction * np.logspace(1, 9, 200)[:, None]  # out to 1e9 sizes: pulled in
+    for points in (far, _points(moved, faces, rng, 300).astype(np.float32).astype(np.float64)):
+        truth = oracle.signed_distance(points, moved, faces)
+        for sent in (points, points.astype(np.float32)):
+            result = field.query(sent, mode="exact", outputs=ALL_OUTPUTS)
+            assert np.all(np.isfinite(result.distance)) and np.all(np.isfinite(result.closest_point))
+            np.testing.assert_allclose(result.distance, truth, rtol=tol.FLOAT32_RELATIVE,
+                                       atol=tol.EXACT_DISTANCE * oracle.bbox_diagonal(moved))
+    near = _points(moved, faces, rng, 300).astype(np.float32).astype(np.float64)
+    _assert_true_to(field.query(near.astype(np.float32), mode="exact", outputs=ALL_OUTPUTS), near, moved, faces,
+                    signed=True)
+
+
 def test_a_slice_and_the_corner_lists_rebuild_a_rigid_frame_in_place_as_rebuilding_it_would(device: str) -> None:
     vertices, faces = meshes.torus()
     field = DistanceField(vertices, faces, depth=5, device=device)

