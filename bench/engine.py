@@ -213,8 +213,8 @@ def measure_rigid(vertices, faces, *, device: str, depth: int, repeat: int, coun
 
 def print_rigid(rigid: dict) -> None:
     print_table(f"rigid frames (turned and shifted, float64), depth {rigid['depth']}: medians of {rigid['frames']} "
-                f"frames and of the queries of {rigid['query_points']:,} points over the mesh's box, carried with it; errors against the float64 oracle, "
-                "max diagonals",
+                f"frames and of the queries of {rigid['query_points']:,} points over the mesh's box, carried with it; "
+                "errors against the float64 oracle, max diagonals",
                 ["rigid", "frames taken as rigid", "update wall ms", "adf query ms", "exact query ms", "adf error",
                  "exact error"],
                 [[name, r["rigid_frames"], r["update_wall_ms"], r["query_adf_ms"], r["query_exact_ms"],

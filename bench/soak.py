@@ -140,7 +140,8 @@ def _client_main(endpoint: str, index: int, settings: SoakSettings, barrier, war
     try:
         with Client(endpoint, timeout=settings.request_timeout_s) as client:
             objects = [
-                client.register(f"c{index}-o{o}", base, faces, depth=settings.depth)
+                # rigid off: the frames are shifts, which rigid="auto" would keep; the soak holds the rebuilds
+                client.register(f"c{index}-o{o}", base, faces, depth=settings.depth, rigid="off")
                 for o in range(settings.objects_per_client)
             ]
             sent = {obj.name: 0 for obj in objects}

@@ -228,7 +228,8 @@ def test_rows_left_over_a_cap_on_shared_rows_are_refined_all_the_same(device, mo
     for cap in (None, limit):
         if cap is not None:
             monkeypatch.setattr(_octree, "_ROW_SUM_LIMIT", cap)
-        field = DistanceField(vertices, faces, depth=6, sign="none", device=device)
+        # rigid off: the shifted frame is rebuilt, not kept as a rigid motion
+        field = DistanceField(vertices, faces, depth=6, sign="none", rigid="off", device=device)
         field.update(vertices + 0.01)  # a planned frame as well as the measured build
         fields.append(field)
     (levels, cells), (capped_levels, capped_cells) = (f.octree_cells() for f in fields)
@@ -841,9 +842,9 @@ def test_long_searches_shared_out_give_the_same_corners(device, name, depth, ban
     vertices, faces = meshes.load(name)
     diag = oracle.bbox_diagonal(vertices)
     # without coherence every search starts from a spatial seed's loose bound, so the split searches must
-    # find the nearest face themselves
+    # find the nearest face themselves; rigid off, as each setting is tried by rebuilding the same frame
     field = DistanceField(vertices, faces, depth=depth, band=None if band is None else band * diag, coherence=False,
-                          device=device)
+                          rigid="off", device=device)
     field._corners.split = SearchSplit(0, 1, 1)
     field.update(vertices)
     positions, whole, whole_faces = field.corner_samples()
@@ -966,7 +967,7 @@ def test_a_builds_arrays_are_given_back_once_frames_keep_the_domain(device):
     domain keeps them, allocating nothing per frame; and the field stays exact through both. (The radix tree's: the
     SAH tree, linked once and kept, has no links to give back.)"""
     vertices, faces = meshes.sphere()
-    field = DistanceField(vertices, faces, depth=4, bvh="morton", device=device)
+    field = DistanceField(vertices, faces, depth=4, bvh="morton", rigid="off", device=device)  # shifts rebuilt
 
     def build_arrays():
         return {name: arr.ptr for name, arr in field._buffers._arrays.items() if name.startswith("bvh.build.")}
@@ -1017,8 +1018,9 @@ def test_planned_frames_equal_measured_frames(device):
     rng = np.random.default_rng(31)
     points = rng.uniform(-1.3, 1.3, size=(1500, 3)).astype(np.float32)
 
-    planned = DistanceField(flat, faces, depth=5, device=device)
-    measured = DistanceField(flat, faces, depth=5, device=device)
+    # rigid off: the repeated frame and the throw are rebuilt, as every frame here must be
+    planned = DistanceField(flat, faces, depth=5, rigid="off", device=device)
+    measured = DistanceField(flat, faces, depth=5, rigid="off", device=device)
     other = DistanceField(other_vertices, other_faces, depth=6, device=device)
     for k, frame in enumerate(frames):
         planned.update(frame)
@@ -1051,10 +1053,11 @@ def test_a_mesh_thrown_every_frame_keeps_its_side_and_its_field(device, monkeypa
     steps = rng.uniform(-0.8, 0.8, size=(7, 3)) * extent  # each past the margin: every frame moves
     frames = [(vertices + np.float32(s)).astype(np.float32) for s in np.cumsum(steps, axis=0)]
     points = rng.uniform(-0.7, 0.7, size=(800, 3)).astype(np.float32) * extent
-    thrown = DistanceField(vertices, faces, depth=depth, device=device)
-    eager = DistanceField(vertices, faces, depth=depth, device=device)
+    # rigid off: the throws are rebuilt (the default would keep the field and turn the queries)
+    thrown = DistanceField(vertices, faces, depth=depth, rigid="off", device=device)
+    eager = DistanceField(vertices, faces, depth=depth, rigid="off", device=device)
     eager.use_graphs = False
-    fresh = DistanceField(vertices, faces, depth=depth, coherence=False, device=device)
+    fresh = DistanceField(vertices, faces, depth=depth, coherence=False, rigid="off", device=device)
     replay, replays = wp.capture_launch, []
     monkeypatch.setattr(wp, "capture_launch", lambda graph, *a, **k: (replays.append(1), replay(graph, *a, **k)))
     sides = [thrown.info()["domain"]["side"]]
@@ -1087,7 +1090,7 @@ def test_a_move_keeps_the_side_only_while_the_mesh_fits_it_closely(device):
     keep while the mesh fits it closely; a frame that stays in the domain keeps it as before. The field stays
     exact throughout."""
     vertices, faces = meshes.sphere()
-    field = DistanceField(vertices, faces, depth=4, device=device)
+    field = DistanceField(vertices, faces, depth=4, rigid="off", device=device)  # shifts rebuilt
 
     def side_after(frame) -> float:
         field.update(frame)
@@ -1117,7 +1120,7 @@ def test_a_mesh_moved_back_and_forth_by_the_margin_keeps_its_domain(device):
     from badf.bench.soak import cube, frame_vertices
 
     base, faces = cube(8)
-    field = DistanceField(base, faces, depth=4, device=device)
+    field = DistanceField(base, faces, depth=4, rigid="off", device=device)  # the shifts rebuilt, as the soak's
     for frame in range(1, 40):
         field.update(frame_vertices(base, frame))
     assert field.stats()["domain_moves"] == 1
@@ -1210,9 +1213,9 @@ def test_work_beside_the_frame_stream_gives_the_same_field(device, monkeypatch, 
     # far corners searched by subtree too (on the second stream, or after the others on one stream)
     monkeypatch.setattr(CornerField, "far_cells", 6)
     vertices, faces = meshes.load(name)
-    beside = DistanceField(vertices, faces, depth=6, device=device)
+    beside = DistanceField(vertices, faces, depth=6, rigid="off", device=device)  # the shift rebuilt
     monkeypatch.setattr(SideStream, "allowed", False)
-    in_order = DistanceField(vertices, faces, depth=6, device=device)
+    in_order = DistanceField(vertices, faces, depth=6, rigid="off", device=device)
     monkeypatch.setattr(SideStream, "allowed", True)
     assert beside.info()["sign"] == in_order.info()["sign"] == sign
     extent = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
@@ -1241,8 +1244,8 @@ def test_far_corners_searched_by_subtree_give_the_same_field(device, name, band)
     vertices, faces = meshes.load(name)
     extent = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
     band = None if band is None else band * extent
-    whole = DistanceField(vertices, faces, depth=6, band=band, device=device)
-    split = DistanceField(vertices, faces, depth=6, band=band, device=device)
+    whole = DistanceField(vertices, faces, depth=6, band=band, rigid="off", device=device)  # the shift rebuilt
+    split = DistanceField(vertices, faces, depth=6, band=band, rigid="off", device=device)
     whole._corners.far_cells = 0
     split._corners.far_cells = 2
     frames = [vertices * np.float32(1.0 + 0.01 * k) for k in range(1, 5)]
@@ -1315,8 +1318,8 @@ def test_arrays_that_live_within_a_stage_are_laid_over_the_octrees_scratch(devic
 
     allocated = _allocations(monkeypatch)
     vertices, faces = meshes.load("spot")
-    whole = DistanceField(vertices, faces, depth=5, sign="winding", device=device)
-    shared = DistanceField(vertices, faces, depth=5, sign="winding", device=device)
+    whole = DistanceField(vertices, faces, depth=5, sign="winding", rigid="off", device=device)  # the shift rebuilt
+    shared = DistanceField(vertices, faces, depth=5, sign="winding", rigid="off", device=device)
     whole._corners.split, whole._corners.far_cells = SearchSplit(0, 1, 1), 0
     shared._corners.split, shared._corners.far_cells = SearchSplit(4, 6, 64), 2
     extent = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
@@ -1378,8 +1381,8 @@ def test_fields_at_any_power_of_two_scale_equal_the_unit_field_scaled_to_the_bit
     answers = {mode: unit.query(points, mode=mode, outputs=ALL_OUTPUTS) for mode in ("exact", "adf")}
     for power in (-100, -60, -24, 24, 40):  # sizes from 1e-30 to 1e12 (smaller ones give subnormal float32 answers)
         scale = 2.0**power
-        field = DistanceField(vertices * scale, faces, depth=5, device=device)
-        field.update(vertices * scale)  # a planned frame as well as the build
+        field = DistanceField(vertices * scale, faces, depth=5, rigid="off", device=device)
+        field.update(vertices * scale)  # a planned frame as well as the build (rigid off: the same frame rebuilt)
         for mode, expected in answers.items():
             got = field.query(points * scale, mode=mode, outputs=ALL_OUTPUTS)
             assert np.array_equal(got.distance, (expected.distance * scale).astype(np.float32)), (power, mode)

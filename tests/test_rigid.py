@@ -29,7 +29,8 @@ def _points(vertices: np.ndarray, faces: np.ndarray, rng: np.random.Generator, c
     pad = 0.2 * (hi - lo)
     spread = rng.uniform(lo - pad, hi + pad, (count, 3))
     surface = meshes.surface_samples(vertices, faces, 1, rng)
-    near = surface[rng.choice(len(surface), count // 2)] + rng.normal(0.0, 0.01 * np.linalg.norm(hi - lo), (count // 2, 3))
+    spread = 0.01 * np.linalg.norm(hi - lo)
+    near = surface[rng.choice(len(surface), count // 2)] + rng.normal(0.0, spread, (count // 2, 3))
     return np.concatenate([spread, near])
 
 
@@ -88,7 +89,8 @@ def test_a_turned_and_shifted_frame_keeps_the_field_and_answers_for_where_the_me
     # nothing ran on the device for them: the last build's counts and stage times stand
     assert stats["times_ms"] == before["times_ms"] and stats["domain_moves"] == 0
     # the domain is the first frame's cube, carried with the mesh
-    assert field.info()["domain"]["side"] == DistanceField(vertices, faces, depth=5, device=device).info()["domain"]["side"]
+    fresh = DistanceField(vertices, faces, depth=5, device=device)
+    assert field.info()["domain"]["side"] == fresh.info()["domain"]["side"]
 
 
 def test_a_rigid_frames_points_far_away_and_sent_as_float32_are_answered_as_the_oracle_answers(device: str) -> None:
