@@ -29,8 +29,8 @@ def _points(vertices: np.ndarray, faces: np.ndarray, rng: np.random.Generator, c
     pad = 0.2 * (hi - lo)
     spread = rng.uniform(lo - pad, hi + pad, (count, 3))
     surface = meshes.surface_samples(vertices, faces, 1, rng)
-    spread = 0.01 * np.linalg.norm(hi - lo)
-    near = surface[rng.choice(len(surface), count // 2)] + rng.normal(0.0, spread, (count // 2, 3))
+    off = 0.01 * np.linalg.norm(hi - lo)
+    near = surface[rng.choice(len(surface), count // 2)] + rng.normal(0.0, off, (count // 2, 3))
     return np.concatenate([spread, near])
 
 
