@@ -383,6 +383,8 @@ class DistanceField:
         self._rigid_test = RigidTest(v, self._used) if self._rigid_mode == "auto" and self._region is None else None
         self._pose: Pose | None = None  # the current frame's pose from the reference frame, which the field is of
         self._posed_vertices: np.ndarray | None = None  # the current frame, kept to rebuild it in place on demand
+        self._posed_store: np.ndarray | None = None  # the array that holds it, kept from frame to frame
+        self._reference: np.ndarray | None = None
         self._keep_reference(v, lo, hi)
         self._counters = _Counters()
 
@@ -485,7 +487,9 @@ class DistanceField:
         """Keep the field of the reference frame for frame v, which is the reference moved by `pose`."""
         identity = bool(np.array_equal(pose.rotation, np.eye(3)) and not pose.translation.any())
         self._pose = None if identity else pose
-        self._posed_vertices = None if identity else np.array(v)  # the caller may write into theirs
+        if not identity:  # a copy: the caller may write into theirs
+            self._posed_store = _held_copy(self._posed_store, v)
+        self._posed_vertices = None if identity else self._posed_store
         self._frame += 1
         self._counters.updates += 1
         self._counters.rigid_frames += 1
@@ -520,7 +524,7 @@ class DistanceField:
     def _keep_reference(self, v: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
         """Keep a rebuilt frame (a copy: the caller may write into theirs) for the test of later rigid frames."""
         if self._rigid_test is not None:
-            self._reference = np.array(v)
+            self._reference = _held_copy(self._reference, v)
             self._rigid_tolerance = RIGID_TOLERANCE * float(np.linalg.norm(hi - lo))
 
     def _in_place(self) -> None:
@@ -1033,6 +1037,14 @@ def _move_to_local(vertices: wp.array(dtype=wp.vec3), to_local: wp.array(dtype=w
     A frame that came local has centre 0 and scale 1, which leave every finite coordinate as it is."""
     i = wp.tid()
     vertices[i] = (vertices[i] - wp.vec3(to_local[0], to_local[1], to_local[2])) * to_local[3]
+
+
+def _held_copy(held: np.ndarray | None, v: np.ndarray) -> np.ndarray:
+    """A copy of v in `held` where it has v's shape and dtype (no allocation from frame to frame), else a new one."""
+    if held is None or held.shape != v.shape or held.dtype != v.dtype:
+        return np.array(v)
+    np.copyto(held, v)
+    return held
 
 
 def _placed(domain: _Domain, pose: Pose) -> tuple[_Domain, np.ndarray, np.ndarray]:

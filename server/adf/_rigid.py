@@ -96,8 +96,11 @@ def _lengths_kept(before: np.ndarray, after: np.ndarray, tolerance: float) -> bo
 
 
 def _within(reference: np.ndarray, frame: np.ndarray, pose: Pose, tolerance: float) -> bool:
-    moved = reference.astype(np.float64) @ pose.rotation.T + pose.translation
-    return bool(np.abs(moved - frame).max() <= tolerance)
+    """Whether the pose carries every reference row to the frame's within `tolerance` per coordinate."""
+    moved = _turn(pose.rotation, reference)
+    moved += pose.translation
+    moved -= frame
+    return bool(np.abs(moved, out=moved).max() <= tolerance)
 
 
 def _fit(reference: np.ndarray, frame: np.ndarray) -> Pose | None:
