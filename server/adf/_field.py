@@ -382,8 +382,9 @@ class DistanceField:
         # the mesh's coordinates, so a mesh that moves through it needs its field rebuilt
         self._rigid_test = RigidTest(v, self._used) if self._rigid_mode == "auto" and self._region is None else None
         self._pose: Pose | None = None  # the current frame's pose from the reference frame, which the field is of
-        self._posed_vertices: np.ndarray | None = None  # the current frame, kept to rebuild it in place on demand
-        self._posed_store: np.ndarray | None = None  # the array that holds it, kept from frame to frame
+        # while a pose is held, the current frame, kept to rebuild it in place on demand (the array is kept from
+        # frame to frame)
+        self._posed_vertices: np.ndarray | None = None
         self._reference: np.ndarray | None = None
         self._keep_reference(v, lo, hi)
         self._counters = _Counters()
@@ -488,8 +489,7 @@ class DistanceField:
         identity = bool(np.array_equal(pose.rotation, np.eye(3)) and not pose.translation.any())
         self._pose = None if identity else pose
         if not identity:  # a copy: the caller may write into theirs
-            self._posed_store = _held_copy(self._posed_store, v)
-        self._posed_vertices = None if identity else self._posed_store
+            self._posed_vertices = _held_copy(self._posed_vertices, v)
         self._frame += 1
         self._counters.updates += 1
         self._counters.rigid_frames += 1
@@ -515,10 +515,10 @@ class DistanceField:
             # through, and that frame is rebuilt in full, measured, without a graph.
             self._failed_update = f"{type(error).__name__}: {error}"
             self._planned, self._graph, self._graph_candidate = False, None, None
-            self._pose = self._posed_vertices = None
+            self._pose = None
             raise
         self._failed_update = None
-        self._pose = self._posed_vertices = None
+        self._pose = None
         self._keep_reference(v, lo, hi)
 
     def _keep_reference(self, v: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
