@@ -1040,6 +1040,50 @@ def test_planned_frames_equal_measured_frames(device):
     assert np.abs(values[pick] - truth).max() <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(frames[-1])
 
 
+@pytest.mark.parametrize("sign", ["auto", "none"])
+def test_a_plan_a_violent_frame_outgrew_is_given_back_once_frames_settle(device, monkeypatch, sign):
+    """A violent frame (a soup of the mesh's vertices scattered over its box: a cloth that blew up) is measured and
+    plans later frames for its sizes. Once enough calm frames in a row need far less (30 by default, 4 here), later
+    frames are planned for the largest of them and the buffers sized anew: the object holds what one that never saw
+    the violent frame holds, where it kept the soup's sizes for as long as it lived before. The fields equal, bit
+    for bit, those of an object that measures every frame, and its corners are exact."""
+    from badf.server.adf import _field
+
+    monkeypatch.setattr(_field, "_PLAN_GIVEN_BACK_AFTER", 4)
+    vertices, faces = meshes.sphere()
+    vertices = np.asarray(vertices, np.float32)
+    rng = np.random.default_rng(11)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    soup = (lo + rng.random(vertices.shape) * (hi - lo)).astype(np.float32)  # inside the box: the domain stays
+    calm = [vertices * np.float32(1.0 + 1e-3 * (k % 3)) for k in range(7)]
+    points = rng.uniform(-1.3, 1.3, size=(600, 3)).astype(np.float32)
+
+    def planned_bytes(f: DistanceField) -> int:
+        held = f.stats()["memory_bytes"]
+        return held["field"] + held["coherence"] + held["scratch"]
+
+    field = DistanceField(vertices, faces, depth=5, sign=sign, rigid="off", device=device)
+    measured = DistanceField(vertices, faces, depth=5, sign=sign, rigid="off", device=device)
+    steady = DistanceField(vertices, faces, depth=5, sign=sign, rigid="off", device=device)  # never sees the soup
+    for frame in [vertices * np.float32(1.001), soup, *calm]:
+        field.update(frame)
+        measured._planned = False  # every frame of this one measures its sizes
+        measured.update(frame)
+        steady.update(vertices if frame is soup else frame)
+        _assert_same_fields(field, measured, points)
+        if frame is soup:  # what the octree's plan sizes: the field, coherence and scratch
+            soup_held = planned_bytes(field)
+            assert soup_held > 2 * planned_bytes(steady)
+    stats = field.stats()
+    assert stats["plans_given_back"] == 1 and stats["replans"] == 1  # the soup's, and none after the give-back
+    assert stats["domain_moves"] == 0
+    assert planned_bytes(field) <= 1.05 * planned_bytes(steady)
+    assert stats["device_bytes"] <= 1.05 * steady.stats()["device_bytes"]
+    positions, values, _ = field.corner_samples()
+    truth = oracle.signed_distance(positions, calm[-1], faces, signed=sign != "none")
+    assert np.abs(values - truth).max() <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(calm[-1])
+
+
 @pytest.mark.parametrize("name,depth", [("spot", 6), ("stanford-bunny", 5)])
 def test_a_mesh_thrown_every_frame_keeps_its_side_and_its_field(device, monkeypatch, name, depth):
     """A mesh thrown further every frame moves the domain every frame but keeps its side, so its lattice and its

@@ -164,18 +164,31 @@ class Octree:
         self.corner_set.planned = with_headroom(self.corner_count)
         return True
 
-    def replan_from_counts(self) -> float:
-        """Plan later frames for the counts the last frame reported (`take_counts`), as a measuring build
-        plans them for the counts it reads; returns how many times over the old plan held the new one's
-        cells or corners, whichever more."""
-        over = max(self.cell_set.planned / with_headroom(self.surface_cell_count),
-                   self.corner_set.planned / with_headroom(self.corner_count))
-        self.cell_set.planned = with_headroom(self.surface_cell_count)
+    def counts(self) -> tuple[int, int, int, int, int]:
+        """The last frame's counts that plan later ones: cells (with the halo's), the surface's own cells, octree
+        nodes, internal nodes, corners."""
+        return (self.surface_cell_count, self.surface_only_count, self.node_count, self.internal_count,
+                self.corner_count)
+
+    def plan_excess(self, counts: tuple[int, int, int, int, int]) -> float:
+        """How many times over the plan holds what frames of these counts (`counts`) would be planned with: the
+        most of its cells, nodes and corners."""
+        cells, _, nodes, _, corners = counts
+        return max(self.cell_set.planned / with_headroom(cells), self.node_capacity / with_headroom(nodes),
+                   self.corner_set.planned / with_headroom(corners))
+
+    def replan_from_counts(self, counts: tuple[int, int, int, int, int] | None = None) -> float:
+        """Plan later frames for the counts the last frame reported (`take_counts`), or for `counts` (as `counts()`
+        orders them), as a measuring build plans them for the counts it reads; returns how many times over the old
+        plan held the new one's cells or corners, whichever more."""
+        cells, surface_only, nodes, internal, corners = self.counts() if counts is None else counts
+        over = max(self.cell_set.planned / with_headroom(cells), self.corner_set.planned / with_headroom(corners))
+        self.cell_set.planned = with_headroom(cells)
         if self.halo > 0:  # the halo pass's threads (it alone counts the cells before its own)
-            self.surface_planned = with_headroom(self.surface_only_count)
-        self.node_capacity = with_headroom(self.node_count)
-        self.internal_capacity = with_headroom(self.internal_count)
-        self.corner_set.planned = with_headroom(self.corner_count)
+            self.surface_planned = with_headroom(surface_only)
+        self.node_capacity = with_headroom(nodes)
+        self.internal_capacity = with_headroom(internal)
+        self.corner_set.planned = with_headroom(corners)
         return over
 
     def set_region(self, box: np.ndarray, origin: wp.vec3, side: float) -> None:
