@@ -10,6 +10,7 @@ from the call to the end of the device work, Python and read-backs included.
 
 
 import argparse
+import itertools
 import json
 import platform
 import statistics
@@ -221,6 +222,57 @@ def print_rigid(rigid: dict) -> None:
                   f"{r['adf_vs_oracle']['max_error_diag']:.2e}", f"{r['exact_vs_oracle']['max_error_diag']:.2e}"]
                  for name, r in (("auto", rigid["rigid"]), ("off (rebuilt)", rigid["rebuilt"]))])
     print(f"  the host's test of a deforming frame under rigid=\"auto\": {rigid['deforming_frame_test_ms']} ms")
+
+
+def measure_violent(vertices, faces, *, device: str, depth: int, repeat: int, noise: float = 0.2) -> dict:
+    """Calm deforming frames, one violent frame (every vertex thrown up to `noise` of the box's extent, kept in the
+    box so that the domain stays: a simulation that blew up for a frame), then calm frames again: each phase's
+    update times and memory, while the violent frame's plan is kept (its first frames after) and once it is given
+    back (after _PLAN_GIVEN_BACK_AFTER calm frames in a row that need far less); the last frame's exact errors."""
+    from badf.server.adf import DistanceField
+    from badf.server.adf._field import _PLAN_GIVEN_BACK_AFTER
+
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    throw = np.random.default_rng(0).uniform(-1.0, 1.0, size=vertices.shape) * noise * float(np.max(hi - lo))
+    violent = np.clip(vertices + throw, lo, hi).astype(vertices.dtype)
+    calm = (deform(vertices, 0.02 * k) for k in itertools.count())
+    field = DistanceField(vertices, faces, depth=depth, device=device, rigid="off")
+    last = [vertices]
+
+    def phase(frames: list[np.ndarray]) -> dict:
+        walls, stages = _time_updates(field, frames, device)
+        last[0] = frames[-1]
+        stats = field.stats()
+        return {"update_wall_ms": round(_median(walls), 4), "update_gpu_ms": round(_median([s["total"] for s in stages]), 4),
+                "device_mib": round(stats["device_bytes"] / 2**20, 2), "corners": stats["counts"]["unique_corners"]}
+
+    def calm_frames(count: int) -> list[np.ndarray]:
+        return [next(calm) for _ in range(count)]
+
+    phase(calm_frames(3))  # warm-up: compiles kernels, captures the frame's graph
+    phases = {"calm before": phase(calm_frames(repeat)), "the violent frame": phase([violent])}
+    kept = min(repeat, _PLAN_GIVEN_BACK_AFTER - 2)
+    phases["calm, its plan kept"] = phase(calm_frames(kept))  # the violent frame's plan in force
+    phase(calm_frames(_PLAN_GIVEN_BACK_AFTER + 2 - kept))  # the give-back, a frame sized anew, the graph captured again
+    phases["calm, plan given back"] = phase(calm_frames(repeat))
+    stats = field.stats()
+    positions, values, _ = field.corner_samples()
+    pick = np.random.default_rng(1).choice(len(positions), min(len(positions), ORACLE_SAMPLE), replace=False)
+    corners = errors_against(values[pick], signed_distance(positions[pick], last[0], faces), last[0])
+    return {"depth": depth, "frames": repeat, "noise": noise, "phases": phases, "corners_vs_oracle": corners,
+            "plans_given_back": stats["plans_given_back"], "replans": stats["replans"],
+            "domain_moves": stats["domain_moves"]}
+
+
+def print_violent(violent: dict) -> None:
+    print_table(f"a violent frame (vertices thrown up to {violent['noise']:g} of the extent, in the box), depth "
+                f"{violent['depth']}: medians of {violent['frames']} calm frames a phase; plans given back "
+                f"{violent['plans_given_back']}, replans {violent['replans']}",
+                ["phase", "update device ms", "update wall ms", "corners", "MiB"],
+                [[name, r["update_gpu_ms"], r["update_wall_ms"], r["corners"], r["device_mib"]]
+                 for name, r in violent["phases"].items()])
+    print(f"  the last frame's corners against the float64 oracle (max / mean, diagonals): "
+          f"{violent['corners_vs_oracle']['max_error_diag']:.2e} / {violent['corners_vs_oracle']['mean_error_diag']:.2e}")
 
 
 def measure_dense_baseline(vertices, faces, *, device: str, repeat: int, resolution: int = 129) -> dict:
@@ -728,6 +780,7 @@ def run(args: argparse.Namespace) -> int:
     report["dense_baseline"] = baseline
     report["allocations"] = measure_allocations(vertices, faces, device=device, depth=args.depth)
     report["rigid"] = measure_rigid(vertices, faces, device=device, depth=args.depth, repeat=repeat)
+    report["violent"] = measure_violent(vertices, faces, device=device, depth=args.depth, repeat=repeat)
     first = report["configurations"][0]
     print_table(
         f"engine on {report['device']}, {args.mesh} ({len(faces)} triangles), median of {repeat}",
@@ -762,6 +815,7 @@ def run(args: argparse.Namespace) -> int:
               f"(its own count {a['field_counted_bytes'] / 2**20:.2f}); the dense baseline "
               f"{a['dense_baseline_allocated_bytes'] / 2**20:.2f} MiB (wp.Mesh, its inputs and the grid)")
     print_rigid(report["rigid"])
+    print_violent(report["violent"])
     if args.out:
         with open(args.out, "w") as handle:
             json.dump(report, handle, indent=2)

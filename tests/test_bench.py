@@ -65,6 +65,13 @@ def test_engine_benchmark_runs(tmp_path: Path) -> None:
     assert first["exact_vs_oracle"]["mean_error_diag"] <= first["adf_vs_oracle"]["mean_error_diag"]
     assert 0 < first["adf_vs_oracle"]["max_error_diag"] < 0.5
     assert report["dense_baseline"]["grid_vs_oracle"]["points"] == 1000
+    # the violent frame's rows: each phase timed, the plan never held more after the give-back's frames than
+    # while the violent frame's was kept, and the corners after it all exact
+    violent = report["violent"]
+    assert list(violent["phases"]) == ["calm before", "the violent frame", "calm, its plan kept", "calm, plan given back"]
+    assert all(phase["update_gpu_ms"] > 0 and phase["corners"] > 0 for phase in violent["phases"].values())
+    assert violent["phases"]["calm, plan given back"]["device_mib"] <= violent["phases"]["calm, its plan kept"]["device_mib"]
+    assert violent["corners_vs_oracle"]["max_error_diag"] <= tol.EXACT_DISTANCE and violent["domain_moves"] == 0
 
 
 def test_engine_benchmark_runs_on_the_sah_tree(tmp_path: Path) -> None:
