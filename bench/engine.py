@@ -198,6 +198,8 @@ def measure_rigid(vertices, faces, *, device: str, depth: int, repeat: int, coun
             times = _time_wall(lambda _: answers.__setitem__("r", field.query(points, mode=query_mode)), device, repeat)
             row[f"query_{query_mode}_ms"] = round(_median(times), 4)
             row[f"{query_mode}_vs_oracle"] = errors_against(answers["r"].distance[:ORACLE_SAMPLE], truth, last)
+        if mode == "auto":
+            row.update(_rigid_run_memory(field, vertices, device))
         rows[mode] = row
         del field
     test = RigidTest(vertices, None)
@@ -212,6 +214,24 @@ def measure_rigid(vertices, faces, *, device: str, depth: int, repeat: int, coun
             "deforming_frame_test_ms": round(_median(tests), 4)}
 
 
+def _rigid_run_memory(field, vertices, device: str) -> dict:
+    """What a field of rigid frames holds before and after a run long enough for its frame scratch to be given back,
+    and the wall time of the two deforming frames after it (the first allocates the scratch again, and on CUDA runs
+    eagerly before its frame is captured again)."""
+    from badf.server.adf._field import _SCRATCH_GIVEN_BACK_AFTER
+
+    base = deform(vertices, 0.01)
+    field.update(base)  # a deforming frame: rebuilt, the run of rigid frames starts after it
+    before = field.stats()["device_bytes"]
+    for k in range(_SCRATCH_GIVEN_BACK_AFTER):
+        field.update(_rigid_motion(vertices, k + 1)(base))
+    after = field.stats()["device_bytes"]
+    walls = [_time_wall(lambda _: field.update(deform(vertices, 0.02 * (k + 1))), device, 1)[0] for k in range(3)]
+    return {"rigid_run_frames": _SCRATCH_GIVEN_BACK_AFTER, "device_mib_before_run": round(before / 2**20, 2),
+            "device_mib_after_run": round(after / 2**20, 2), "scratch_given_back": field.stats()["scratch_given_back"],
+            "rebuild_after_run_wall_ms": [round(w, 4) for w in walls]}
+
+
 def print_rigid(rigid: dict) -> None:
     print_table(f"rigid frames (turned and shifted, float64), depth {rigid['depth']}: medians of {rigid['frames']} "
                 f"frames and of the queries of {rigid['query_points']:,} points over the mesh's box, carried with it; "
@@ -222,6 +242,10 @@ def print_rigid(rigid: dict) -> None:
                   f"{r['adf_vs_oracle']['max_error_diag']:.2e}", f"{r['exact_vs_oracle']['max_error_diag']:.2e}"]
                  for name, r in (("auto", rigid["rigid"]), ("off (rebuilt)", rigid["rebuilt"]))])
     print(f"  the host's test of a deforming frame under rigid=\"auto\": {rigid['deforming_frame_test_ms']} ms")
+    r = rigid["rigid"]
+    print(f"  after {r['rigid_run_frames']} rigid frames in a row the frame scratch is given back: "
+          f"{r['device_mib_before_run']} -> {r['device_mib_after_run']} MiB; the deforming frames after it took "
+          f"{', '.join(str(w) for w in r['rebuild_after_run_wall_ms'])} ms (wall)")
 
 
 def measure_violent(vertices, faces, *, device: str, depth: int, repeat: int, noise: float = 0.2) -> dict:

@@ -65,6 +65,10 @@ def test_engine_benchmark_runs(tmp_path: Path) -> None:
     assert first["exact_vs_oracle"]["mean_error_diag"] <= first["adf_vs_oracle"]["mean_error_diag"]
     assert 0 < first["adf_vs_oracle"]["max_error_diag"] < 0.5
     assert report["dense_baseline"]["grid_vs_oracle"]["points"] == 1000
+    # a run of rigid frames gives back the frame scratch
+    rigid = report["rigid"]["rigid"]
+    assert rigid["scratch_given_back"] == 1 and rigid["device_mib_after_run"] < rigid["device_mib_before_run"]
+    assert len(rigid["rebuild_after_run_wall_ms"]) == 3
     # the violent frame's rows: each phase timed, the plan never held more after the give-back's frames than
     # while the violent frame's was kept, and the corners after it all exact
     violent = report["violent"]

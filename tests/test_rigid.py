@@ -225,3 +225,51 @@ def test_the_caller_writing_into_its_frame_afterwards_changes_nothing(device: st
     field.slice("x", 0.3, resolution=8)  # rebuilt in place from the frame as it was sent
     _assert_true_to(field.query(points, mode="exact", outputs=ALL_OUTPUTS), points, vertices + [0.3, 0.0, 0.0],
                     faces, signed=True)
+
+
+def test_a_long_run_of_rigid_frames_gives_back_the_frame_scratch_until_the_next_rebuild(device: str) -> None:
+    """A rigid body's frames rebuild nothing, so after a run of them (30 by default, 4 here) the octree's frame
+    scratch is freed: the object holds that much less while it stays rigid, its queries stay exact, and the next
+    frame that deforms it allocates the scratch again and is the same field, bit for bit, as that of a twin that
+    kept it (on CUDA, its frame run eagerly and then captured again)."""
+    vertices, faces = meshes.load("spot")
+    vertices = vertices.astype(np.float64)
+    rng = np.random.default_rng(41)
+    field = DistanceField(vertices, faces, depth=5, device=device)
+    twin = DistanceField(vertices, faces, depth=5, device=device)
+    field._scratch_kept_frames, twin._scratch_kept_frames = 4, 10**9
+    centre = vertices.mean(axis=0)
+    for field_of in (field, twin):  # one deforming frame, so that a planned frame (a graph on CUDA) is in hand
+        field_of.update(vertices * 1.001)
+    held = field.stats()["memory_bytes"]["scratch"]
+    for k in range(1, 7):
+        moved = (vertices * 1.001 - centre) @ _rotation([1, 2, 3], 0.1 * k).T + centre + [0.05 * k, 0.0, 0.0]
+        for field_of in (field, twin):
+            field_of.update(moved)
+    assert field.stats()["rigid_frames"] == 6 and field.stats()["scratch_given_back"] == 1
+    freed = held - field.stats()["memory_bytes"]["scratch"]
+    assert freed > 0 and twin.stats()["memory_bytes"]["scratch"] == held
+    points = _points(moved, faces, rng)
+    result = field.query(points, mode="exact", outputs=ALL_OUTPUTS)
+    _assert_true_to(result, points, moved, faces, signed=True)
+    for mode in ("adf", "exact"):
+        got, expected = field.query(points, mode=mode, outputs=ALL_OUTPUTS), twin.query(points, mode=mode, outputs=ALL_OUTPUTS)
+        for name in ALL_OUTPUTS:
+            np.testing.assert_array_equal(getattr(got, name), getattr(expected, name))
+    # deforming frames: rebuilt, the scratch allocated again, the fields the twin's bit for bit
+    captures = field.stats()["graph_captures"]
+    for k in range(3):
+        bent = moved + 0.01 * np.sin(3.0 * moved[:, [1, 2, 0]]) * (k + 1)
+        for field_of in (field, twin):
+            field_of.update(bent)
+        for got, expected in zip(field.corner_samples(), twin.corner_samples()):
+            np.testing.assert_array_equal(got, expected)
+        got, expected = field.query(points, outputs=ALL_OUTPUTS), twin.query(points, outputs=ALL_OUTPUTS)
+        for name in ALL_OUTPUTS:
+            np.testing.assert_array_equal(getattr(got, name), getattr(expected, name))
+    assert field.stats()["memory_bytes"] == twin.stats()["memory_bytes"]
+    if device.startswith("cuda"):
+        assert field.stats()["graph_captures"] > captures
+    positions, values, _ = field.corner_samples()
+    truth = oracle.signed_distance(positions, bent, faces)
+    assert np.abs(values - truth).max() <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(bent)

@@ -161,6 +161,16 @@ class SharedScratch:
         each stage that needs more than the last."""
         self._hold(max(self._offsets(layout)[-1] for layout in layouts) // _SCRATCH_ELEMENT)
 
+    def give_back(self) -> bool:
+        """Free the allocation, for an object whose frames need none for a while (a later `take` or `reserve`
+        allocates it anew); whether there was one. Nothing queued may still read it: the device is waited for, and
+        the owner drops any captured graph that lays its arrays over it."""
+        if self._backing is None:
+            return False
+        wp.synchronize_device(self.device)
+        self._backing = None
+        return self.buffers.release(self.name)
+
     def _offsets(self, layout) -> list[int]:
         """Each array's byte offset in the allocation, and the end of the last."""
         offsets = [0]
