@@ -163,12 +163,18 @@ def test_a_stopping_worker_answers_the_request_in_progress_and_refuses_the_waiti
     and that reply was lost in 4 of 9 runs of an outside check (round 4) with three waiting."""
     endpoint = free_endpoint()
     settings = WorkerSettings(worker_id="stopping", listen=(endpoint,), device="cpu", stats_interval_s=60.0)
-    points = np.random.default_rng(5).uniform(-2.0, 2.0, (1_000_000, 3)).astype(np.float32)
+    # Each query must run long enough that the three behind it are seen waiting: exact queries among a soup of
+    # 2,000 large triangles, whose boxes all overlap, so that every search tests most of them (about 2 s on 2 cores
+    # for 60,000 points, carried in 0.7 MB). A million points about a 768-face cube, as before, took 0.22 s once the
+    # engine had grown faster, no longer than the requests took to arrive: three were seldom seen waiting at once.
+    rng = np.random.default_rng(5)
+    soup = rng.uniform(-0.5, 0.5, (6000, 3))
+    points = rng.uniform(-0.6, 0.6, (60_000, 3)).astype(np.float32)
     outcomes: list = []
     with ExitStack() as stack:
         process = stack.enter_context(worker_process(settings, start_timeout_s=300.0))
         client = stack.enter_context(Client(endpoint, timeout=120))
-        obj = client.register("busy", BASE, FACES, depth=4)
+        obj = client.register("busy", soup, np.arange(6000).reshape(2000, 3), depth=4)
 
         def ask() -> None:
             try:
