@@ -156,7 +156,7 @@ def test_a_killed_worker_gives_clear_errors_then_clients_register_again() -> Non
 
 
 def test_a_stopping_worker_answers_the_request_in_progress_and_refuses_the_waiting() -> None:
-    """SIGTERM while one exact query of a million points runs and three wait behind it: the running one is
+    """SIGTERM while one long exact query runs and three wait behind it: the running one is
     answered and the waiting ones refused (WorkerUnavailableError), as documented. The worker withdrew its
     liveliness token first, and the client, which cancels what it sent to a worker whose token goes, lost
     the answer of the running one. Later the object undeclared its keys before the running query replied,
