@@ -320,6 +320,15 @@ class CornerField:
         _keys, _count, _bvh, capacity, _depth, centre, side = self._next
         self._previous_capacity, self._previous_centre, self._previous_side = capacity, centre, side
 
+    def forget_frame(self) -> None:
+        """Drop last frame's nearest faces (trim): the next frame searches from spatial seeds, as a first frame does."""
+        wp.synchronize_device(self.device)  # no queued frame still writes them
+        self.buffers.release("corner.prev_keys")
+        self.buffers.release("corner.prev_face")
+        self._previous_keys = self.buffers.ensure("corner.prev_keys", 1, wp.int32)
+        self._previous_face = self.buffers.ensure("corner.prev_face", 1, wp.int32)
+        self._previous_capacity, self._previous_centre, self._previous_side = 0, None, 0.0
+
     def _launch_keep(self, report: wp.array, fits_at: int) -> None:
         keys, count, bvh, capacity, depth, _centre, _side = self._next
         # the keys in 32 bits (previous_key): 1 MB less for the bunny than the list's own 64; faces, not leaves,
