@@ -19,7 +19,14 @@ from badf.server._cuda import (
 )
 from badf.server._router import RouterSettings
 from badf.server._run import exit_now, run_gpu_workers, run_router, run_worker
-from badf.server._worker import DEFAULT_STATS_INTERVAL_S, WorkerSettings, check_stats_interval, default_worker_id
+from badf.server._worker import (
+    DEFAULT_STATS_INTERVAL_S,
+    DEFAULT_TRIM_AFTER_S,
+    WorkerSettings,
+    check_stats_interval,
+    check_trim_after,
+    default_worker_id,
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -65,6 +72,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--stats-interval", type=float, default=None, metavar="SECONDS",
         help=f"seconds between a worker's stats lines (default: {DEFAULT_STATS_INTERVAL_S:g})",
     )
+    parser.add_argument(
+        "--trim-after", type=float, default=None, metavar="SECONDS",
+        help="an object that gets no frame for this long gives back what only its next frame would use (frame "
+        "scratch, last frame's faces) and its query buffers, once until its next frame; 0: never "
+        f"(default: {DEFAULT_TRIM_AFTER_S:g})",
+    )  # fmt: skip
 
 
 def check_endpoint_lists(args: argparse.Namespace) -> None:
@@ -82,6 +95,8 @@ def settings_from(args: argparse.Namespace) -> WorkerSettings:
     # checked under the flags' names first: the settings name their fields ("stats_interval_s must be ...")
     stats_interval = DEFAULT_STATS_INTERVAL_S if args.stats_interval is None else args.stats_interval
     check_stats_interval(stats_interval, "--stats-interval")
+    trim_after = DEFAULT_TRIM_AFTER_S if args.trim_after is None else args.trim_after
+    check_trim_after(trim_after, "--trim-after")
     if args.worker_id is not None:
         check_name(args.worker_id, what="--worker-id")
     return WorkerSettings(
@@ -93,13 +108,15 @@ def settings_from(args: argparse.Namespace) -> WorkerSettings:
         connect=tuple(args.connect),
         config_file=args.config,
         stats_interval_s=stats_interval,
+        trim_after_s=trim_after,
     )
 
 
 def router_settings_from(args: argparse.Namespace) -> RouterSettings:
     # a router has no worker, so no stats lines (the interval was taken and ignored; eighteenth outside check)
     for given, flag in ((args.worker_id is not None, "--worker-id"), (args.mode != "router", "--mode"),
-                        (args.stats_interval is not None, "--stats-interval")):
+                        (args.stats_interval is not None, "--stats-interval"),
+                        (args.trim_after is not None, "--trim-after")):
         if given:
             raise ValueError(f"{flag} does not apply to --router-only")
     return RouterSettings(

@@ -80,6 +80,8 @@ class DistanceFieldLike(Protocol):
 
     def stats(self) -> dict[str, Any]: ...
 
+    def trim(self) -> int: ...
+
 
 @dataclass
 class Counters:
@@ -128,6 +130,7 @@ class ServedObject:
         limits: Limits,
         max_waiting_requests: int,
         on_deleted: Callable[[ServedObject], None],
+        trim_after_s: float = 0.0,
     ) -> None:
         self.name = name
         self.worker_id = worker_id
@@ -143,6 +146,11 @@ class ServedObject:
         self._limits = limits
         self._max_waiting = max_waiting_requests
         self._on_deleted = on_deleted
+        # an object that gets no frame for this long (0: never) gives back what only its next frame would use, once
+        # until the next frame comes (`_trim_if_idle`)
+        self._trim_after_s = trim_after_s
+        self._last_frame_at = time.monotonic()
+        self._trimmed = False
         self._counters = Counters()  # since this registration (the object's info)
         self._replaced_counters = Counters()  # what the registrations it replaced had counted
         self._last_error: str | None = None
@@ -334,9 +342,10 @@ class ServedObject:
     def _run(self) -> None:
         while True:
             with self._lock:
-                timeout = None
+                timeouts = [self._trim_due_in()]
                 if self._snapshot_stale:
-                    timeout = max(0.0, self._snapshot_at + _SNAPSHOT_PERIOD_S - time.monotonic())
+                    timeouts.append(max(0.0, self._snapshot_at + _SNAPSHOT_PERIOD_S - time.monotonic()))
+                timeout = min((t for t in timeouts if t is not None), default=None)
                 if not self._lock.wait_for(self._has_work, timeout=timeout):
                     frames, request = [], None  # idle with a stale snapshot: refresh it below
                 elif self._closing is not None:
@@ -346,6 +355,7 @@ class ServedObject:
                     request = self._waiting.popleft() if self._waiting else None
             if not frames and request is None:
                 try:
+                    self._trim_if_idle()
                     self._refresh_snapshot(force=True)
                 except Exception:  # noqa: BLE001 - a failing report must not end the object's thread
                     log.exception("reading the engine's info and stats for %r failed", self.name)
@@ -361,6 +371,23 @@ class ServedObject:
 
     def _has_work(self) -> bool:
         return bool(self._pending or self._waiting or self._closing)
+
+    def _trim_due_in(self) -> float | None:
+        """Seconds until the object is due a trim (0: now), or None: trims are off, or it was trimmed since its last
+        frame."""
+        if self._trim_after_s <= 0 or self._trimmed:
+            return None
+        return max(0.0, self._last_frame_at + self._trim_after_s - time.monotonic())
+
+    def _trim_if_idle(self) -> None:
+        """Trim the field once it has had no frame for `trim_after_s` (the engine's `trim`: its frame scratch, last
+        frame's faces, and its query and slice buffers, which a later query allocates again)."""
+        if self._trim_due_in() != 0.0:
+            return
+        self._trimmed = True
+        freed = self._field.trim()
+        log.debug("%r had no frame for %g s: trimmed, %.1f MiB given back", self.name, self._trim_after_s,
+                  freed / 2**20)
 
     def _apply_newest(self, frames: list[_PendingFrame]) -> None:
         """Apply the pending frame with the highest number first; `_apply` then finds the other one (if a
@@ -412,6 +439,7 @@ class ServedObject:
             raise VertexCountMismatchError(
                 f"{self.name} has {self._vertex_count} vertices; frame {frame.frame} has {len(frame.vertices)}"
             )
+        self._last_frame_at, self._trimmed = time.monotonic(), False  # trimmed or not, the field holds a frame's memory
         with engine_errors():
             self._field.update(frame.vertices)
         with self._lock:
@@ -511,6 +539,7 @@ class ServedObject:
                 self._replaced_counters += self._counters
                 self._counters = Counters()
                 self._last_error = None
+                self._last_frame_at, self._trimmed = time.monotonic(), False  # a new field, with a frame's memory
             for pending in stale:
                 if pending.query is not None:
                     refuse(pending.query, StaleFrameError(f"{self.name} was replaced before this frame was applied"))

@@ -50,6 +50,8 @@ log = logging.getLogger("badf.server")
 # How long a starting worker waits for the routers to say whether its id is taken (they answer at once)
 _ID_CHECK_TIMEOUT_S = 5.0
 DEFAULT_STATS_INTERVAL_S = 10.0  # seconds between a worker's stats lines (`--stats-interval`)
+# seconds without a frame after which an object gives back what only its next frame would use (`--trim-after`)
+DEFAULT_TRIM_AFTER_S = 10.0
 
 FieldBuilder = Callable[[np.ndarray, np.ndarray, ObjectOptions], DistanceFieldLike]
 
@@ -64,6 +66,12 @@ def check_stats_interval(seconds: float, name: str) -> None:
     36,326 lines in 5 s, and 1e300 overflowed the clock."""
     if not (0.1 <= seconds <= 1e6):
         raise ValueError(f"{name} must be a positive finite number of seconds in 0.1..1e6, got {seconds}")
+
+
+def check_trim_after(seconds: float, name: str) -> None:
+    """ValueError unless the idle time before a trim is 0 (never) or 0.1 to 1e6 seconds (nan and inf fail too)."""
+    if not (seconds == 0 or 0.1 <= seconds <= 1e6):
+        raise ValueError(f"{name} must be 0 (never) or a finite number of seconds in 0.1..1e6, got {seconds}")
 
 
 @dataclass(frozen=True)
@@ -83,6 +91,7 @@ class WorkerSettings:
     config_file: str | None = None
     limits: Limits = DEFAULT_LIMITS
     stats_interval_s: float = DEFAULT_STATS_INTERVAL_S
+    trim_after_s: float = DEFAULT_TRIM_AFTER_S
     max_waiting_requests: int = 32
     max_waiting_registrations: int = 8
 
@@ -90,6 +99,7 @@ class WorkerSettings:
         check_name(self.worker_id, what="worker id")
         KeySpace(self.namespace)
         check_stats_interval(self.stats_interval_s, "stats_interval_s")
+        check_trim_after(self.trim_after_s, "trim_after_s")
         if self.max_waiting_requests < 1 or self.max_waiting_registrations < 1:
             raise ValueError("max_waiting_requests and max_waiting_registrations must be at least 1")
         if self.mode == "client" and self.config_file is None:
@@ -376,6 +386,7 @@ class Worker:
                 limits=self.settings.limits,
                 max_waiting_requests=self.settings.max_waiting_requests,
                 on_deleted=self._forget,
+                trim_after_s=self.settings.trim_after_s,
             )
             info = served.info()  # before anyone can swap another registration in
             with self._lock:

@@ -48,6 +48,7 @@ class StandInField:
         self.frame = 0
         self.updates_started = threading.Semaphore(0)
         self.on_update: Callable[[np.ndarray], None] | None = None
+        self.trims = 0
 
     @property
     def vertex_count(self) -> int:
@@ -108,7 +109,11 @@ class StandInField:
         return {"sign": "none", "vertex_count": self.vertex_count, "face_count": self.face_count}
 
     def stats(self) -> dict:
-        return {"frame": self.frame}
+        return {"frame": self.frame, "trims": self.trims}
+
+    def trim(self) -> int:
+        self.trims += 1
+        return 0
 
 
 def nearest_vertex(points: np.ndarray, vertices: np.ndarray) -> np.ndarray:

@@ -93,6 +93,10 @@ CASES = [
     (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--stiff"], "badf demo morph: --stiff is for the cloth"),
     # errors named the settings' fields (stats_interval_s, max_slice_hz), not the flags (eleventh outside check)
     (["serve", "--listen", "<free>", "--stats-interval", "0"], "badf serve: --stats-interval must be a positive"),
+    (["serve", "--listen", "<free>", "--trim-after", "nan"], "badf serve: --trim-after must be 0 (never) or a finite"),
+    (["serve", "--listen", "<free>", "--trim-after", "0.01"], "--trim-after must be 0 (never) or a finite number of "
+     "seconds in 0.1..1e6, got 0.01"),
+    (["serve", "--router-only", "--listen", "<free>", "--trim-after", "5"], "--trim-after does not apply to --router-only"),
     (["view", "--connect", "<free>", "--max-slice-hz", "0"], "badf view: --max-slice-hz must be a finite positive"),
     (["view", "--connect", "<free>", "--max-mesh-hz", "-1"], "badf view: --max-mesh-hz must be a finite positive"),
     (["view", "--connect", "<free>", "--max-info-hz", "nan"], "badf view: --max-info-hz must be a finite positive"),
