@@ -299,6 +299,54 @@ def print_violent(violent: dict) -> None:
           f"{violent['corners_vs_oracle']['max_error_diag']:.2e} / {violent['corners_vs_oracle']['mean_error_diag']:.2e}")
 
 
+def measure_trim(vertices, faces, *, device: str, depth: int, repeat: int, count: int = 65536,
+                 large: int = 1 << 20) -> dict:
+    """What `trim` gives back and what it costs after: the bytes held after deforming frames, after one query of
+    `large` points with every output, and after the trim; the wall time of queries of `count` points before the trim
+    and of the first after it (which allocates its buffers again), and whether its answers were the same; the update
+    times of the first frame after the trim (scratch allocated again, searched from spatial seeds, on CUDA run eagerly)
+    and of the frames after it."""
+    from badf.server.adf import DistanceField
+
+    frames = (deform(vertices, 0.02 * k) for k in itertools.count())
+    field = DistanceField(vertices, faces, depth=depth, device=device, rigid="off")
+    _time_updates(field, [next(frames) for _ in range(3)], device)  # warm-up: compiles, captures the frame's graph
+    held = field.stats()["device_bytes"]
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    rng = np.random.default_rng(0)
+    field.query(rng.uniform(lo, hi, size=(large, 3)).astype(np.float32), outputs=("distance", "closest_point", "normal",
+                                                                                   "face"))
+    after_large = field.stats()["device_bytes"]
+    points = rng.uniform(lo, hi, size=(count, 3)).astype(np.float32)
+    answers = {}
+    before = _time_wall(lambda _: answers.__setitem__("before", field.query(points).distance), device, repeat)
+    freed = field.trim()
+    trimmed = field.stats()["device_bytes"]
+    first_query = _time_wall(lambda _: answers.__setitem__("after", field.query(points).distance), device, 1)[0]
+    first_walls, first_stages = _time_updates(field, [next(frames)], device)
+    walls, stages = _time_updates(field, [next(frames) for _ in range(repeat)], device)
+    return {"depth": depth, "large_query_points": large, "query_points": count,
+            "device_mib_after_frames": round(held / 2**20, 2), "device_mib_after_large_query": round(after_large / 2**20, 2),
+            "device_mib_after_trim": round(trimmed / 2**20, 2), "freed_mib": round(freed / 2**20, 2),
+            "query_wall_ms_before": round(_median(before), 4), "first_query_wall_ms_after": round(first_query, 4),
+            "answers_identical": bool(np.array_equal(answers["before"], answers["after"])),
+            "first_update_after_wall_ms": round(first_walls[0], 4),
+            "first_update_after_gpu_ms": round(first_stages[0]["total"], 4),
+            "update_wall_ms": round(_median(walls), 4), "update_gpu_ms": round(_median([s["total"] for s in stages]), 4),
+            "trims": field.stats()["trims"]}
+
+
+def print_trim(trim: dict) -> None:
+    print_table(f"trim (an idle object gives back what only later frames and queries use), depth {trim['depth']}",
+                ["MiB after frames", f"after a query of {trim['large_query_points']:,} points", "after the trim",
+                 "freed MiB", f"query ms ({trim['query_points']:,} points)", "first query after ms",
+                 "same answers", "first update after wall / device ms", "updates then wall / device ms"],
+                [[trim["device_mib_after_frames"], trim["device_mib_after_large_query"], trim["device_mib_after_trim"],
+                  trim["freed_mib"], trim["query_wall_ms_before"], trim["first_query_wall_ms_after"],
+                  trim["answers_identical"], f"{trim['first_update_after_wall_ms']} / {trim['first_update_after_gpu_ms']}",
+                  f"{trim['update_wall_ms']} / {trim['update_gpu_ms']}"]])
+
+
 def measure_dense_baseline(vertices, faces, *, device: str, repeat: int, resolution: int = 129) -> dict:
     """wp.Mesh (default BVH) + mesh_query_point_sign_normal at every point of a resolution^3 grid."""
     import warp as wp
@@ -805,6 +853,7 @@ def run(args: argparse.Namespace) -> int:
     report["allocations"] = measure_allocations(vertices, faces, device=device, depth=args.depth)
     report["rigid"] = measure_rigid(vertices, faces, device=device, depth=args.depth, repeat=repeat)
     report["violent"] = measure_violent(vertices, faces, device=device, depth=args.depth, repeat=repeat)
+    report["trim"] = measure_trim(vertices, faces, device=device, depth=args.depth, repeat=repeat)
     first = report["configurations"][0]
     print_table(
         f"engine on {report['device']}, {args.mesh} ({len(faces)} triangles), median of {repeat}",
@@ -840,6 +889,7 @@ def run(args: argparse.Namespace) -> int:
               f"{a['dense_baseline_allocated_bytes'] / 2**20:.2f} MiB (wp.Mesh, its inputs and the grid)")
     print_rigid(report["rigid"])
     print_violent(report["violent"])
+    print_trim(report["trim"])
     if args.out:
         with open(args.out, "w") as handle:
             json.dump(report, handle, indent=2)
