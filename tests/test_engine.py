@@ -373,6 +373,33 @@ def test_coherence_from_32_bit_keys_gives_the_same_field_at_the_deepest_levels(d
         assert np.all(np.diff(kept.numpy()[:count]) >= 0)
 
 
+def test_with_a_band_a_corner_clamped_at_it_names_no_face_whatever_its_search_started_from(device):
+    """A corner beyond the band keeps its search's seed as its leaf (last frame's face, or a spatial one), which the
+    next frame and exact queries start from; `corner_samples` names no face there (-1), as a query at that point
+    answers, so coherence changes none of its columns. The faces it names realise the corners' distances."""
+    vertices, faces = meshes.load("spot")
+    band = 0.03 * oracle.bbox_diagonal(vertices)
+    with_coherence = DistanceField(vertices, faces, depth=5, band=band, coherence=True, device=device)
+    without = DistanceField(vertices, faces, depth=5, band=band, coherence=False, device=device)
+    for k in range(1, 4):
+        frame = vertices + 0.02 * k * np.sin(2.0 * vertices[:, [1, 2, 0]])
+        with_coherence.update(frame)
+        without.update(frame)
+        positions, values, named = with_coherence.corner_samples()
+        _, other_values, other_named = without.corner_samples()
+        clamped = np.abs(values) >= np.float32(with_coherence.info()["band_in_force"]) * (1 - 1e-6)
+        assert 0 < np.count_nonzero(clamped) < len(values) and np.all(named[clamped] == -1)
+        if device == "cpu":  # on CUDA a value may differ in its last bits, and a tie may name another face
+            np.testing.assert_array_equal(values, other_values)
+            np.testing.assert_array_equal(named, other_named)
+        near, atol = ~clamped, tol.EXACT_DISTANCE * oracle.bbox_diagonal(frame)
+        truth = oracle.signed_distance(positions[near], frame, faces, signed=False)
+        np.testing.assert_allclose(np.abs(values[near]), truth, rtol=0, atol=atol)
+        triangles = frame[faces[named[near]]].astype(np.float64)
+        on_named = oracle.closest_points_on_triangles(positions[near], *triangles.transpose(1, 0, 2))
+        np.testing.assert_allclose(np.linalg.norm(on_named - positions[near], axis=1), truth, rtol=0, atol=atol)
+
+
 @pytest.mark.parametrize("far_cells", [None, 8])
 def test_coherence_gives_identical_results_over_an_animation(device, monkeypatch, far_cells):
     """Also with far corners searched by subtree (which corners are far depends on where searches start)."""

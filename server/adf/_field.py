@@ -1058,7 +1058,8 @@ class DistanceField:
     # -- for tests and tools --------------------------------------------------------------------------
     @_on_device
     def corner_samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(positions (C, 3) float64 in world coordinates, signed distances (C,), nearest faces (C,))."""
+        """(positions (C, 3) float64 in world coordinates, signed distances (C,), nearest faces (C,)); with a band,
+        a corner clamped at it has no face within it: -1, as a query there answers."""
         self._in_place()
         keys = self._octree.corner_keys.numpy()[: self._octree.corner_count]
         lattice = _decode_morton(keys)
@@ -1066,8 +1067,13 @@ class DistanceField:
         positions = self._domain.centre + (-self._domain.side / 2.0 + lattice * cell)
         n = self._octree.corner_count
         values = self._corners.value.numpy()[:n].copy()  # on the CPU, numpy() is a view of the buffer
-        _to_world_units(values, self._domain.scale)
         faces = self._bvh.leaf_faces()[self._corners.leaf.numpy()[:n]]
+        band = self._domain.local_band(self._band)
+        if band is not None:
+            # the kernels' test (float32 values against the float32 band): the face kept there is only the search's
+            # seed, last frame's or a spatial one, which the next frame and exact queries start from
+            faces[np.abs(values) >= np.float32(band)] = -1
+        _to_world_units(values, self._domain.scale)
         return positions, values, faces
 
     @_on_device
