@@ -20,7 +20,7 @@ for step in "$@"; do
   echo "=== $step"
   case "$step" in
     tests)
-      python3 -m pytest -q -p no:cacheprovider -k cuda tests/test_engine.py tests/test_engine_inputs.py tests/test_stability.py tests/test_buffers.py tests/test_region.py tests/test_rigid.py \
+      python3 -m pytest -q -p no:cacheprovider -k cuda tests/test_engine.py tests/test_engine_inputs.py tests/test_stability.py tests/test_buffers.py tests/test_region.py tests/test_rigid.py tests/test_trim.py \
         2>&1 | tee "$out/pytest-cuda.log" | tail -25 ;;
     engine)
       python3 -m badf.bench.engine --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --out "$out/engine-bunny.json" \
