@@ -353,9 +353,10 @@ class ServedObject:
                 else:
                     frames, self._pending = list(self._pending.values()), {}
                     request = self._waiting.popleft() if self._waiting else None
+            if not frames:  # also between queries, which may come more often than the trim's wait
+                self._trim_if_idle()
             if not frames and request is None:
                 try:
-                    self._trim_if_idle()
                     self._refresh_snapshot(force=True)
                 except Exception:  # noqa: BLE001 - a failing report must not end the object's thread
                     log.exception("reading the engine's info and stats for %r failed", self.name)
@@ -385,7 +386,11 @@ class ServedObject:
         if self._trim_due_in() != 0.0:
             return
         self._trimmed = True
-        freed = self._field.trim()
+        try:
+            freed = self._field.trim()
+        except Exception:  # noqa: BLE001 - a failing trim must not end the object's thread (the field keeps answering)
+            log.exception("trimming %r failed", self.name)
+            return
         log.debug("%r had no frame for %g s: trimmed, %.1f MiB given back", self.name, self._trim_after_s,
                   freed / 2**20)
 

@@ -3,6 +3,7 @@ changes no answer; a worker trims an object that has had no frame for `trim_afte
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -11,8 +12,11 @@ import meshes
 import oracle
 import tolerances as tol
 from badf.client import Client
+from badf.protocol import DEFAULT_LIMITS, KeySpace, ObjectOptions, WorkerUnavailableError
+from badf.server._objects import ServedObject, _Request
 from badf.server.adf import DistanceField
 from conftest import wait_until
+from stand_in_field import StandInField
 from test_worker_plumbing import FACES, POINTS, VERTICES, ThreadWorker
 
 ALL_OUTPUTS = ("distance", "closest_point", "normal", "face")
@@ -112,6 +116,33 @@ def test_a_worker_trims_an_object_without_frames_once_until_its_next_frame(endpo
         obj.update(VERTICES * 1.01)
         wait_until(lambda: field.trims == 2, timeout=10, what="the trim after the next frame")
         wait_until(lambda: obj.info().field_stats.get("trims") == 2, timeout=10, what="the info's stats")
+
+
+def test_an_object_whose_requests_never_let_up_is_trimmed_all_the_same() -> None:
+    """Requests that come more often than the idle time (a static obstacle queried every step by several clients)
+    keep the object's thread from ever waiting that long; the trim comes between them. Here each request queues the
+    next before it ends, so the thread never finds its queue empty."""
+    field = StandInField(VERTICES, FACES)
+    served = ServedObject("busy", field, ObjectOptions(), vertices=VERTICES, faces=FACES, frame=0, registration=1,
+                          worker_id="w1", keys=KeySpace("badf"), limits=DEFAULT_LIMITS, max_waiting_requests=4,
+                          on_deleted=lambda _obj: None, trim_after_s=0.2)
+    runs, stop = [], threading.Event()
+
+    def request() -> _Request:
+        def run() -> None:
+            runs.append(field.query(POINTS).distance)
+            if not stop.is_set():
+                served._enqueue(request())
+        return _Request(run, lambda _error: None)
+
+    served._thread.start()  # the object's thread alone: no Zenoh keys are declared for this test
+    try:
+        served._enqueue(request())
+        wait_until(lambda: field.trims == 1, timeout=10, what="a trim between requests that never let up")
+        assert len(runs) > 1
+    finally:
+        stop.set()
+        served.close(WorkerUnavailableError("the test is over"))
 
 
 def test_a_worker_with_trims_off_never_trims(endpoint: str) -> None:
