@@ -391,6 +391,7 @@ class ServedObject:
         except Exception:  # noqa: BLE001 - a failing trim must not end the object's thread (the field keeps answering)
             log.exception("trimming %r failed", self.name)
             return
+        release_freed_memory()  # on the CPU back-end the buffers were the process's heap: hand it back
         log.debug("%r had no frame for %g s: trimmed, %.1f MiB given back", self.name, self._trim_after_s,
                   freed / 2**20)
 
@@ -444,9 +445,17 @@ class ServedObject:
             raise VertexCountMismatchError(
                 f"{self.name} has {self._vertex_count} vertices; frame {frame.frame} has {len(frame.vertices)}"
             )
-        self._last_frame_at, self._trimmed = time.monotonic(), False  # trimmed or not, the field holds a frame's memory
-        with engine_errors():
-            self._field.update(frame.vertices)
+        refused = False  # the engine's InvalidInputError: the field is as it was, and so is the trim's clock
+        try:
+            with engine_errors():
+                try:
+                    self._field.update(frame.vertices)
+                except ValueError:
+                    refused = True
+                    raise
+        finally:
+            if not refused:  # applied, or failed on the way: either way the field holds a frame's memory again
+                self._last_frame_at, self._trimmed = time.monotonic(), False
         with self._lock:
             self._frame, self._vertices = frame.frame, frame.vertices
             self._counters.frames_applied += 1

@@ -7,12 +7,13 @@ import threading
 import time
 
 import numpy as np
+import pytest
 
 import meshes
 import oracle
 import tolerances as tol
 from badf.client import Client
-from badf.protocol import DEFAULT_LIMITS, KeySpace, ObjectOptions, WorkerUnavailableError
+from badf.protocol import DEFAULT_LIMITS, KeySpace, ObjectOptions, RejectedInputError, WorkerUnavailableError
 from badf.server._objects import ServedObject, _Request
 from badf.server.adf import DistanceField
 from conftest import wait_until
@@ -102,12 +103,14 @@ def test_a_rigid_body_trimmed_mid_run_keeps_its_pose(device: str) -> None:
 
 def test_a_worker_trims_an_object_without_frames_once_until_its_next_frame(endpoint: str) -> None:
     """With trim_after_s set, an object that gets no frame for that long is trimmed once; queries do not undo that
-    (nor trim it again), and a frame arms it again."""
+    (nor trim it again), nor does a frame the engine refuses, and a frame it takes arms it again."""
     trim_after = 0.2
     with ThreadWorker(endpoint, trim_after_s=trim_after) as worker, Client(endpoint, timeout=10) as client:
         obj = client.register("still", VERTICES, FACES)
         field = worker.fields[0]
         wait_until(lambda: field.trims == 1, timeout=10, what="the first trim")
+        with pytest.raises(RejectedInputError):  # the stand-in refuses vertices beyond 1e6, as the engine bad input
+            obj.update(VERTICES * 1e7)
         # queries for five times the idle time: each is a round trip through the object's thread, none a frame
         until = time.monotonic() + 5 * trim_after
         while time.monotonic() < until:
