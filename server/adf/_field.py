@@ -535,7 +535,7 @@ class DistanceField:
         the captured frame), what only a BVH build uses, last frame's nearest faces (the next frame then searches
         without them, as a first frame does: the same answers, at a first frame's cost) and the buffers of the
         largest query and slice so far. Each comes back when it is next needed. The bunny at depth 7 holds 32.7
-        MiB, 24.4 after a trim (a million-point query adds 40 MiB of buffers until one)."""
+        MiB, 24.9 after a trim (a query of a million points with every output adds 44 MiB of buffers until one)."""
         before = self._buffers.nbytes()
         self._give_back_scratch()
         self._bvh.give_back_build()
