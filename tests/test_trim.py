@@ -21,7 +21,7 @@ from stand_in_field import StandInField
 from test_worker_plumbing import FACES, POINTS, VERTICES, ThreadWorker
 
 ALL_OUTPUTS = ("distance", "closest_point", "normal", "face")
-KEPT_ROLES = ("field", "bvh", "mesh")  # what a query reads: a trim leaves it alone
+KEPT_ROLES = ("field", "mesh")  # what a query reads: a trim leaves it alone (and the BVH's shape, not its boxes)
 FREED_ROLES = ("coherence", "queries", "rebuild")  # what only a later frame or query uses: a trim frees all of it
 PLACEHOLDERS = 64  # bytes: the one-element arrays a kernel is handed where it reads none (last frame's count, ...)
 
@@ -32,9 +32,10 @@ def _assert_same(got, expected) -> None:
 
 
 def test_a_trim_gives_back_what_only_later_frames_use_and_changes_no_answer(device: str) -> None:
-    """After a trim the object holds its field, BVH and mesh and nothing of the frame's scratch, last frame's faces or
-    the query buffers; it answers as before, bit for bit, and its next frames are those of a twin never trimmed (the
-    first of them searched from spatial seeds, as a first frame is; on CUDA run eagerly and captured again)."""
+    """After a trim the object holds its field, mesh and BVH's shape, and nothing of the frame's scratch, the BVH's
+    boxes, last frame's faces or the query buffers; it answers as before, bit for bit (its first query refits the
+    boxes), and its next frames are those of a twin never trimmed (the first of them searched from spatial seeds, as
+    a first frame is; on CUDA run eagerly and captured again)."""
     vertices, faces = meshes.load("spot")
     rng = np.random.default_rng(17)
     field = DistanceField(vertices, faces, depth=5, device=device)
@@ -54,16 +55,18 @@ def test_a_trim_gives_back_what_only_later_frames_use_and_changes_no_answer(devi
     assert freed == bytes_held - bytes_trimmed > 0 and field.stats()["trims"] == 1
     assert all(trimmed[role] == held[role] for role in KEPT_ROLES)
     assert all(trimmed[role] <= PLACEHOLDERS for role in FREED_ROLES)
-    assert 0 < trimmed["scratch"] < held["scratch"]
+    assert 0 < trimmed["scratch"] < held["scratch"] and 0 < trimmed["bvh"] < held["bvh"]
     assert field.trim() == 0 and field.stats()["trims"] == 1  # nothing left to give: not counted
 
-    for mode, expected in before.items():
+    for mode, expected in before.items():  # the first query refits the BVH's boxes, triangles and moments again
         _assert_same(field.query(points, mode=mode, outputs=ALL_OUTPUTS), expected)
+    assert field.stats()["memory_bytes"]["bvh"] == held["bvh"]
     frame_vertices = vertices * 1.006
     truth = oracle.signed_distance(points, frame_vertices, faces)
     diagonal = oracle.bbox_diagonal(frame_vertices)
     np.testing.assert_allclose(before["exact"].distance, truth, rtol=0, atol=tol.EXACT_DISTANCE * diagonal)
 
+    assert field.trim() > 0  # again: the frame below refits the BVH itself, with no query before it
     captures = field.stats()["graph_captures"]
     for k in range(4):
         bent = frame_vertices + 0.01 * np.sin(3.0 * frame_vertices[:, [1, 2, 0]]) * (k + 1)

@@ -144,17 +144,53 @@ class Bvh:
         self.leaf_count = b.array("bvh.leaf_count", 1, wp.int32)
         self.leaf_count.fill_(n)
         self.slot_child = b.array("bvh.slot_child", slots, wp.int32)
-        self.triangles = b.array("bvh.triangles", 3 * n, wp.vec4)
-        self.node_moments = b.array("bvh.node_moments", 4 * max(n - 1, 1) if with_moments else 1, wp.vec4)
         self.wide = WideTree(n, b)
+        self._buffers = b
+        self._allocate_geometry(empty_boxes=False)  # the view's link empties them
         # the rim's fans (vertex ids), and their corners in this frame, written by each refit
         self.rim_count = 0 if rim is None else len(rim)
         self.rim_faces = b.array("bvh.rim_faces", max(self.rim_count, 1), wp.vec3i)
         if self.rim_count:
             self.rim_faces.assign(rim)
         self.rim = b.array("bvh.rim", 3 * max(self.rim_count, 1), wp.vec3)
-        self._buffers = b
         self._cuts: dict[int, wp.array] = {}
+
+    def _allocate_geometry(self, *, empty_boxes: bool) -> None:
+        """The arrays a refit writes in full: the triangles packed for the searches, the winding moments and the
+        4-wide view's boxes (with `empty_boxes`, those of absent entries empty, as the view's link leaves them)."""
+        n, b = self.face_count, self._buffers
+        self.triangles = b.array("bvh.triangles", 3 * n, wp.vec4)
+        self.node_moments = b.array("bvh.node_moments", 4 * max(n - 1, 1) if self.with_moments else 1, wp.vec4)
+        self.wide.planes = b.array("bvh.wide.planes", 6 * self.wide.capacity, wp.vec4)
+        if empty_boxes:
+            wp.launch(_empty_planes, dim=6 * self.wide.capacity, inputs=[self.wide.planes], device=self.device)
+
+    @property
+    def holds_geometry(self) -> bool:
+        return self.triangles is not None
+
+    def give_back_geometry(self) -> bool:
+        """Free what a refit writes in full (the boxes, the packed triangles and the winding moments: 12.2 MB of the
+        bunny's 16.7), for an object that sits idle; `hold_geometry` makes it again. Whether it was held. Nothing may
+        read it until then (the owner drops any captured graph, and views taken before)."""
+        if not self.holds_geometry:
+            return False
+        wp.synchronize_device(self.device)
+        self.triangles = self.node_moments = self.wide.planes = None
+        for name in ("bvh.triangles", "bvh.node_moments", "bvh.wide.planes"):
+            self._buffers.release(name)
+        return True
+
+    def hold_geometry(self, vertices: wp.array, faces: wp.array) -> bool:
+        """Make what `give_back_geometry` freed again, refitted to `vertices` (the frame the tree was last refitted
+        to gives back the same arrays, bit for bit: a refit's merges do not depend on the order threads arrive in);
+        the device is waited for, so that work on any stream may read it. Whether it had to."""
+        if self.holds_geometry:
+            return False
+        self._allocate_geometry(empty_boxes=True)
+        self.refit(vertices, faces)
+        wp.synchronize_device(self.device)
+        return True
 
     def build(self, vertices: wp.array, faces: wp.array, origin: wp.vec3, side: float) -> None:
         """Sort the triangles by the Morton code of their centroid in the domain and link the tree on them (a given
@@ -316,7 +352,7 @@ class WideTree:
         b = buffers
         self.child = b.array("bvh.wide.child", 4 * self.capacity, wp.int32)
         self.first = b.array("bvh.wide.first", self.capacity, wp.int32)
-        self.planes = b.array("bvh.wide.planes", 6 * self.capacity, wp.vec4)
+        self.planes: wp.array | None = None  # the boxes, which the Bvh allocates with what else a refit writes
         # the refit's: each node's binary node, the entry that holds it in its parent (-1 for the root), each
         # leaf's entry, and how many of each node's entries have arrived
         self.node = b.array("bvh.wide.node", self.capacity, wp.int32)

@@ -328,6 +328,7 @@ class CornerField:
         self._previous_keys = self.buffers.ensure("corner.prev_keys", 1, wp.int32)
         self._previous_face = self.buffers.ensure("corner.prev_face", 1, wp.int32)
         self._previous_capacity, self._previous_centre, self._previous_side = 0, None, 0.0
+        self._next = None  # the frame kept already; its view of the BVH would hold arrays a trim gives back
 
     def _launch_keep(self, report: wp.array, fits_at: int) -> None:
         keys, count, bvh, capacity, depth, _centre, _side = self._next

@@ -532,13 +532,16 @@ class DistanceField:
 
         For an object that will sit idle for a while (a static obstacle, a body between takes): the field, the
         BVH and the mesh stay, so queries answer as before, bit for bit. Freed are the octree's frame scratch (with
-        the captured frame), what only a BVH build uses, last frame's nearest faces (the next frame then searches
-        without them, as a first frame does: the same answers, at a first frame's cost) and the buffers of the
-        largest query and slice so far. Each comes back when it is next needed. The bunny at depth 7 holds 32.7
-        MiB, 24.9 after a trim (a query of a million points with every output adds 44 MiB of buffers until one)."""
+        the captured frame), what only a BVH build uses, what a refit writes in full (the BVH's boxes, packed
+        triangles and winding moments: the next query or frame refits them first, to the same bits), last frame's
+        nearest faces (the next frame then searches without them, as a first frame does: the same answers, at a
+        first frame's cost) and the buffers of the largest query and slice so far. Each comes back when it is next
+        needed. The bunny at depth 7 holds 32.7 MiB, 13.3 after a trim (a query of a million points with every
+        output adds 44 MiB of buffers until one)."""
         before = self._buffers.nbytes()
         self._give_back_scratch()
         self._bvh.give_back_build()
+        self._bvh.give_back_geometry()
         self._corners.forget_frame()
         for prefix in ("query.", "slice."):
             self._buffers.release(prefix)
@@ -616,6 +619,7 @@ class DistanceField:
         """The outputs `names` at checked points p: a query's work, which a slice shares (uncounted). With a rigid
         frame's pose, the points are turned into the field's frame on the device, and its closest points and
         normals turned back out on the host (distances and faces are the same in both)."""
+        self._bvh.hold_geometry(self._vertices, self._faces)  # given back by a trim: refitted to this frame again
         count = len(p)
         result = QueryResult(frame=self._frame)
         shapes = {"distance": ((count,), np.float32), "closest_point": ((count, 3), np.float32),
@@ -859,6 +863,7 @@ class DistanceField:
         object's larger sort would otherwise reallocate.
         """
         wall = time.perf_counter()
+        self._bvh.hold_geometry(self._vertices, self._faces)  # given back by a trim: this frame refits it anyway
         if not domain_moved and self._bvh.give_back_build():
             self._graph = None  # a graph that rebuilt the BVH holds what was given back
         self._medial_marked = False  # the leaves the medial surface crosses, marked on demand (query)
