@@ -104,6 +104,32 @@ def test_a_rigid_body_trimmed_mid_run_keeps_its_pose(device: str) -> None:
                                atol=tol.EXACT_DISTANCE * oracle.bbox_diagonal(shifted))
 
 
+def test_a_device_that_cannot_hold_the_bvh_again_refuses_the_query_and_leaves_the_object_whole(monkeypatch) -> None:
+    """The BVH's geometry comes back in three allocations; where the last is refused, the query raises
+    DeviceMemoryError, none of the three is kept, and once the device has room the object answers as before."""
+    from badf.server.adf._buffers import DeviceBuffers, DeviceMemoryError
+
+    vertices, faces = meshes.load("spot")
+    field = DistanceField(vertices, faces, depth=4, device="cpu")
+    points = np.random.default_rng(3).uniform(vertices.min(axis=0), vertices.max(axis=0), (2_000, 3))
+    expected = field.query(points, mode="exact", outputs=ALL_OUTPUTS)
+    field.trim()
+    trimmed = field.stats()["device_bytes"]
+    allocate = DeviceBuffers._allocate
+
+    def refuse_the_boxes(self, name, count, dtype, *, zeroed):
+        if name == "bvh.wide.planes":
+            raise DeviceMemoryError(f"{name}: refused by the test")
+        return allocate(self, name, count, dtype, zeroed=zeroed)
+
+    monkeypatch.setattr(DeviceBuffers, "_allocate", refuse_the_boxes)
+    with pytest.raises(DeviceMemoryError):
+        field.query(points, mode="exact")
+    assert field.stats()["device_bytes"] == trimmed
+    monkeypatch.setattr(DeviceBuffers, "_allocate", allocate)
+    _assert_same(field.query(points, mode="exact", outputs=ALL_OUTPUTS), expected)
+
+
 def test_a_worker_trims_an_object_without_frames_once_until_its_next_frame(endpoint: str) -> None:
     """With trim_after_s set, an object that gets no frame for that long is trimmed once; queries do not undo that
     (nor trim it again), nor does a frame the engine refuses, and a frame it takes arms it again."""

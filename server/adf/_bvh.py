@@ -159,11 +159,13 @@ class Bvh:
         """The arrays a refit writes in full: the triangles packed for the searches, the winding moments and the
         4-wide view's boxes (with `empty_boxes`, those of absent entries empty, as the view's link leaves them)."""
         n, b = self.face_count, self._buffers
-        self.triangles = b.array("bvh.triangles", 3 * n, wp.vec4)
-        self.node_moments = b.array("bvh.node_moments", 4 * max(n - 1, 1) if self.with_moments else 1, wp.vec4)
-        self.wide.planes = b.array("bvh.wide.planes", 6 * self.wide.capacity, wp.vec4)
+        # all three or none: a device that cannot hold the last leaves the BVH without geometry, as it was
+        triangles = b.array("bvh.triangles", 3 * n, wp.vec4)
+        moments = b.array("bvh.node_moments", 4 * max(n - 1, 1) if self.with_moments else 1, wp.vec4)
+        planes = b.array("bvh.wide.planes", 6 * self.wide.capacity, wp.vec4)
         if empty_boxes:
-            wp.launch(_empty_planes, dim=6 * self.wide.capacity, inputs=[self.wide.planes], device=self.device)
+            wp.launch(_empty_planes, dim=6 * self.wide.capacity, inputs=[planes], device=self.device)
+        self.triangles, self.node_moments, self.wide.planes = triangles, moments, planes
 
     @property
     def holds_geometry(self) -> bool:
@@ -173,13 +175,13 @@ class Bvh:
         """Free what a refit writes in full (the boxes, the packed triangles and the winding moments: 12.2 MB of the
         bunny's 16.7), for an object that sits idle; `hold_geometry` makes it again. Whether it was held. Nothing may
         read it until then (the owner drops any captured graph, and views taken before)."""
-        if not self.holds_geometry:
-            return False
-        wp.synchronize_device(self.device)
+        held = self.holds_geometry
+        if held:
+            wp.synchronize_device(self.device)
         self.triangles = self.node_moments = self.wide.planes = None
-        for name in ("bvh.triangles", "bvh.node_moments", "bvh.wide.planes"):
+        for name in ("bvh.triangles", "bvh.node_moments", "bvh.wide.planes"):  # also what a failed hold made
             self._buffers.release(name)
-        return True
+        return held
 
     def hold_geometry(self, vertices: wp.array, faces: wp.array) -> bool:
         """Make what `give_back_geometry` freed again, refitted to `vertices` (the frame the tree was last refitted
@@ -187,9 +189,13 @@ class Bvh:
         the device is waited for, so that work on any stream may read it. Whether it had to."""
         if self.holds_geometry:
             return False
-        self._allocate_geometry(empty_boxes=True)
-        self.refit(vertices, faces)
-        wp.synchronize_device(self.device)
+        try:
+            self._allocate_geometry(empty_boxes=True)
+            self.refit(vertices, faces)
+            wp.synchronize_device(self.device)
+        except BaseException:
+            self.give_back_geometry()  # not half made: the next query or frame tries again
+            raise
         return True
 
     def build(self, vertices: wp.array, faces: wp.array, origin: wp.vec3, side: float) -> None:
