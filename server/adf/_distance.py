@@ -172,13 +172,8 @@ class CornerField:
         self.value: wp.array | None = None
         self.leaf: wp.array | None = None
         self.coherent = False  # whether the last compute started from last frame's faces
-        self._previous_capacity = 0
         self._previous_count = buffers.ensure("corner.prev_count", 1, wp.int32)
-        self._next = None
-        self._previous_keys = buffers.ensure("corner.prev_keys", 1, wp.int32)
-        self._previous_face = buffers.ensure("corner.prev_face", 1, wp.int32)
-        self._previous_centre: np.ndarray | None = None
-        self._previous_side = 0.0
+        self._no_previous_frame()
         # last frame's lattice in this frame's local coordinates (origin, 1 / cell), written on the host before
         # each frame (stage_lattice) and read on the device, so a frame captured as a CUDA graph after the domain
         # moved replays for any later move: on CUDA it travels through a pinned buffer, copied within the frame
@@ -325,10 +320,15 @@ class CornerField:
         wp.synchronize_device(self.device)  # no queued frame still writes them
         self.buffers.release("corner.prev_keys")
         self.buffers.release("corner.prev_face")
+        self._no_previous_frame()
+
+    def _no_previous_frame(self) -> None:
+        """No frame to start from: one-element stand-ins for last frame's keys and faces, which the kernels take
+        and do not read, and no frame computed to keep (its view of the BVH would hold arrays a trim gives back)."""
         self._previous_keys = self.buffers.ensure("corner.prev_keys", 1, wp.int32)
         self._previous_face = self.buffers.ensure("corner.prev_face", 1, wp.int32)
         self._previous_capacity, self._previous_centre, self._previous_side = 0, None, 0.0
-        self._next = None  # the frame kept already; its view of the BVH would hold arrays a trim gives back
+        self._next = None
 
     def _launch_keep(self, report: wp.array, fits_at: int) -> None:
         keys, count, bvh, capacity, depth, _centre, _side = self._next

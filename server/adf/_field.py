@@ -531,7 +531,7 @@ class DistanceField:
         """Give back the memory that only the next frame, query or slice would use; the bytes freed.
 
         For an object that will sit idle for a while (a static obstacle, a body between takes): the field, the
-        BVH and the mesh stay, so queries answer as before, bit for bit. Freed are the octree's frame scratch (with
+        mesh and the BVH's shape stay, so queries answer as before, bit for bit. Freed are the octree's frame scratch (with
         the captured frame), what only a BVH build uses, what a refit writes in full (the BVH's boxes, packed
         triangles and winding moments: the next query or frame refits them first, to the same bits), last frame's
         nearest faces (the next frame then searches without them, as a first frame does: the same answers, at a
