@@ -268,7 +268,8 @@ def measure_violent(vertices, faces, *, device: str, depth: int, repeat: int, no
         last[0] = frames[-1]
         stats = field.stats()
         return {"update_wall_ms": round(_median(walls), 4), "update_gpu_ms": round(_median([s["total"] for s in stages]), 4),
-                "device_mib": round(stats["device_bytes"] / 2**20, 2), "corners": stats["counts"]["unique_corners"]}
+                "device_mib": round(stats["device_bytes"] / 2**20, 2), "corners": stats["counts"]["unique_corners"],
+                "winding_walks_cut": stats["winding_walks_cut"]}
 
     def calm_frames(count: int) -> list[np.ndarray]:
         return [next(calm) for _ in range(count)]
@@ -292,8 +293,8 @@ def print_violent(violent: dict) -> None:
     print_table(f"a violent frame (vertices thrown up to {violent['noise']:g} of the extent, in the box), depth "
                 f"{violent['depth']}: medians of {violent['frames']} calm frames a phase; plans given back "
                 f"{violent['plans_given_back']}, replans {violent['replans']}",
-                ["phase", "update device ms", "update wall ms", "corners", "MiB"],
-                [[name, r["update_gpu_ms"], r["update_wall_ms"], r["corners"], r["device_mib"]]
+                ["phase", "update device ms", "update wall ms", "corners", "winding walks cut", "MiB"],
+                [[name, r["update_gpu_ms"], r["update_wall_ms"], r["corners"], r["winding_walks_cut"], r["device_mib"]]
                  for name, r in violent["phases"].items()])
     print(f"  the last frame's corners against the float64 oracle (max / mean, diagonals): "
           f"{violent['corners_vs_oracle']['max_error_diag']:.2e} / {violent['corners_vs_oracle']['mean_error_diag']:.2e}")

@@ -48,7 +48,7 @@ from badf.server.adf._geometry import (
     thread_fence,
     triangle_distance_sq,
 )
-from badf.server.adf._tolerances import BOX_SLACK, RIM_TRUST, WINDING_FAR_FIELD, WINDING_FAR_FIELD_SAH
+from badf.server.adf._tolerances import BOX_SLACK, RIM_TRUST, WINDING_BUDGET, WINDING_FAR_FIELD, WINDING_FAR_FIELD_SAH
 
 _BOX_SLACK = wp.constant(BOX_SLACK)
 _INV_FOUR_PI = wp.constant(1.0 / (4.0 * math.pi))
@@ -98,6 +98,9 @@ class BvhView:
     keys_in_leaf_order: int
     # node radii beyond which a winding-number walk takes a node's expansion (WINDING_FAR_FIELD, by the tree's shape)
     far_field: float
+    # internal nodes a winding-number walk opens at most (WINDING_BUDGET), and the count of walks cut short by it
+    winding_budget: int
+    winding_cuts: wp.array(dtype=wp.int32)
     # Fast-winding-number moments of each internal node i, four vec4 (a one-element array when the sign
     # does not need them). A single triangle's are worked out from it where needed (`leaf_moments`): its
     # first moment about its centroid is zero, so storing them would only repeat the triangle.
@@ -129,6 +132,7 @@ class Bvh:
         self.face_count = face_count
         self.shape = shape if face_count > 1 else None
         self.far_field = WINDING_FAR_FIELD if self.shape is None else WINDING_FAR_FIELD_SAH
+        self.winding_budget = WINDING_BUDGET
         self._shape_linked = False
         self.internal_count = face_count - 1
         self.code_levels, self.index_bits = code_layout(face_count)
@@ -154,6 +158,7 @@ class Bvh:
             self.rim_faces.assign(rim)
         self.rim = b.array("bvh.rim", 3 * max(self.rim_count, 1), wp.vec3)
         self._cuts: dict[int, wp.array] = {}
+        self.winding_cuts = b.array("bvh.winding_cuts", 1, wp.int32)  # zeroed by each frame, read with its report
 
     def _allocate_geometry(self, *, empty_boxes: bool) -> None:
         """The arrays a refit writes in full: the triangles packed for the searches, the winding moments and the
@@ -320,6 +325,7 @@ class Bvh:
         v.key_leaf = self.key_leaf
         v.keys_in_leaf_order = 1 if self.shape is None else 0
         v.far_field = self.far_field
+        v.winding_budget, v.winding_cuts = self.winding_budget, self.winding_cuts
         v.node_moments = self.node_moments
         v.wide_planes, v.wide_child, v.wide_first = self.wide.planes, self.wide.child, self.wide.first
         v.rim, v.rim_count = self.rim, self.rim_count
@@ -747,7 +753,10 @@ def _winding_number_function(careful: bool):
     can afford."""
 
     def winding_number(bvh: BvhView, p: wp.vec3):
-        """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018)."""
+        """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018).
+        A walk opens at most `bvh.winding_budget` internal nodes; past that, a near node takes its expansion where
+        p lies beyond its radius and adds nothing where p lies within, and the walk counts itself in
+        `bvh.winding_cuts`."""
         total = float(0.0)
         cancelled = bool(False)
         if bvh.internal_count == 0:
@@ -760,8 +769,11 @@ def _winding_number_function(careful: bool):
         nodes = stack_int()
         nodes[0] = 0
         count = int(1)
+        opened = int(0)
+        cut = bool(False)
         while count > 0:
             count -= 1
+            opened += 1
             slot = 2 * nodes[count]
             for side in range(2):
                 child = bvh.slot_child[slot + side]
@@ -785,9 +797,15 @@ def _winding_number_function(careful: bool):
                     dist = wp.length(offset)
                     if dist > bvh.far_field * centre_radius[3]:
                         total += _far_field(bvh, child, offset / dist, dist)
-                    else:
+                    elif opened < bvh.winding_budget:
                         nodes[count] = child
                         count += 1
+                    else:
+                        cut = True
+                        if dist > centre_radius[3]:
+                            total += _far_field(bvh, child, offset / dist, dist)
+        if cut:
+            wp.atomic_add(bvh.winding_cuts, 0, 1)
         return total * _INV_FOUR_PI, cancelled
 
     winding_number.__name__ = winding_number.__qualname__ = "winding_number_careful" if careful else "winding_number"

@@ -286,6 +286,7 @@ class _Counters:
     plans_given_back: int = 0  # plans that long held far more than the frames needed, sized down (_watch_plan)
     scratch_given_back: int = 0  # runs of rigid frames long enough that the frame scratch was freed until a rebuild
     trims: int = 0  # calls of trim() that gave memory back
+    winding_walks_cut: int = 0  # the last frame's winding-number walks cut short by their budget (WINDING_BUDGET)
 
 
 class DistanceField:
@@ -827,6 +828,7 @@ class DistanceField:
             "plans_given_back": c.plans_given_back,
             "scratch_given_back": c.scratch_given_back,
             "trims": c.trims,
+            "winding_walks_cut": c.winding_walks_cut,
             "queries": c.queries,
             "query_points": c.query_points,
             "slices": c.slices,
@@ -919,6 +921,7 @@ class DistanceField:
         """Queue the staged frame's copy to the device and its move to local coordinates: within the frame, so a
         replayed frame is one launch from the host."""
         wp.copy(self._vertices, self._staging)
+        self._bvh.winding_cuts.zero_()  # this frame's count, for its report
         self._to_local.upload()
         wp.launch(_move_to_local, dim=self._vertex_count, inputs=[self._vertices, self._to_local.array])
 
@@ -1030,17 +1033,18 @@ class DistanceField:
         """Gather the frame's counts on the device, with whether each fits its capacity, and queue the keeping of
         the frame (which takes effect only if they all do) and one copy of the counts to the host. The layout
         (`_take_report`): the sizes, the sign's frame method, the levels' first nodes, whether parts overlap, whether
-        seams tore, the surface's own cells, whether it all fitted."""
+        seams tore, the surface's own cells, whether it all fitted, the winding walks cut short."""
         sizes = self._octree.report()
         assert len(sizes) == _REPORT_SIZES
         (a0, i0, c0), (a1, i1, c1), (a2, i2, c2), (a3, i3, c3) = sizes
         n = self._normals
         wp.launch(_gather_report, dim=1,
                   inputs=[a0, i0, c0, a1, i1, c1, a2, i2, c2, a3, i3, c3, n.winding_frame, self._octree.level_starts,
-                          self._depth + 1, n.parts_overlap, n.seams_torn, self._octree.surface_count],
+                          self._depth + 1, n.parts_overlap, n.seams_torn, self._octree.surface_count,
+                          self._bvh.winding_cuts],
                   outputs=[self._report_on_device], device=self._device)
         self._keep_queued = self._corners.queue_keep(self._report_on_device, self._fits_at)
-        wp.copy(self._report, self._report_on_device, count=self._fits_at + 1)
+        wp.copy(self._report, self._report_on_device, count=self._fits_at + 2)
 
     @property
     def _fits_at(self) -> int:
@@ -1058,6 +1062,7 @@ class DistanceField:
         counts = [int(x) for x in report[:k]]
         self._octree.take_counts(counts, report[k + 1 : k + 2 + self._depth], int(report[k + 4 + self._depth]))
         self._normals.set_frame_method(int(report[k]), int(report[k + 2 + self._depth]), int(report[k + 3 + self._depth]))
+        self._counters.winding_walks_cut = int(report[self._fits_at + 1])
         return True
 
     # -- for tests and tools --------------------------------------------------------------------------
@@ -1090,7 +1095,8 @@ class DistanceField:
         return levels, _decode_morton(keys & 0xFFFFFFFF).astype(np.int64)
 
 
-# The frame's report: four sizes, the sign's frame method, up to MAX_DEPTH + 1 levels' first nodes, three flags
+# The frame's report: four sizes, the sign's frame method, up to MAX_DEPTH + 1 levels' first nodes, three flags, the
+# winding walks cut short
 _REPORT_SIZES = 4
 _REPORT_LENGTH = 32
 
@@ -1100,7 +1106,8 @@ def _gather_report(a0: wp.array(dtype=wp.int32), i0: int, c0: int, a1: wp.array(
                    a2: wp.array(dtype=wp.int32), i2: int, c2: int, a3: wp.array(dtype=wp.int32), i3: int, c3: int,
                    winding_frame: wp.array(dtype=wp.int32), level_starts: wp.array(dtype=wp.int32), levels: int,
                    parts_overlap: wp.array(dtype=wp.int32), seams_torn: wp.array(dtype=wp.int32),
-                   surface_count: wp.array(dtype=wp.int32), report: wp.array(dtype=wp.int32)):
+                   surface_count: wp.array(dtype=wp.int32), winding_cuts: wp.array(dtype=wp.int32),
+                   report: wp.array(dtype=wp.int32)):
     """One thread writes the frame's report (`DistanceField._queue_report`'s layout)."""
     report[0] = a0[i0]
     report[1] = a1[i1]
@@ -1114,6 +1121,7 @@ def _gather_report(a0: wp.array(dtype=wp.int32), i0: int, c0: int, a1: wp.array(
     report[7 + levels] = surface_count[0]
     fits = a0[i0] <= c0 and a1[i1] <= c1 and a2[i2] <= c2 and a3[i3] <= c3
     report[8 + levels] = wp.where(fits, 1, 0)
+    report[9 + levels] = winding_cuts[0]
 
 
 @wp.kernel(enable_backward=False)

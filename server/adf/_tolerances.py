@@ -68,6 +68,13 @@ SURFACE_SNAP = 1.0e-6
 WINDING_FAR_FIELD = 2.0
 WINDING_FAR_FIELD_SAH = 2.25
 
+# A winding-number walk opens at most this many internal nodes; past it, a node still near the point is summed by its
+# expansion where the point lies outside the node's radius and left out where it lies within (`BvhView.winding_budget`).
+# A sound surface needs few: near a surface a walk opens a few nodes a level (BUDGET_PLACEHOLDER). A soup of large
+# triangles needs nearly every node at every point, as no node is far from anything: without a budget its frame cost
+# the corners times the faces (BUDGET_SOUP_PLACEHOLDER). Each walk cut short is counted (`stats()["winding_walks_cut"]`).
+WINDING_BUDGET = 2048
+
 # An open mesh's winding numbers in queries are corrected by its rim (`_sign.rim_fans`: fans C that close the faces'
 # boundary chain, so w_S + w_C is a whole number off the surface). Where a walk's |w| lies within RIM_DOUBT of 1/2 (its
 # expansions erred by up to 0.06 on the shared meshes, and 0.09 on frames that run through themselves), w becomes
