@@ -68,15 +68,75 @@ def test_a_soup_frame_is_cut_short_with_its_distances_exact(device, monkeypatch)
 
 def test_a_closed_mesh_thrown_into_a_soup_counts_its_cut_walks(device, monkeypatch):
     """A closed mesh is signed by pseudonormals until a frame runs parts into each other; that frame is signed by
-    winding numbers, which the budget cuts short when the frame is a soup. The next sound frame cuts none."""
+    winding numbers, which the budget cuts short when the frame is a soup. The throw moves the domain, so the tree is
+    linked on the soup: the first calm frame after it runs on that tree and the next links it again (on CUDA, 4,096
+    walks of the first calm frame's overlap watch met a budget of 128 there). Then no walk is cut."""
     monkeypatch.setattr(_bvh, "WINDING_BUDGET", 128)  # the sphere's walks (its frames' overlap watch) need fewer
     vertices, faces = meshes.sphere()
-    field = DistanceField(vertices, faces, depth=4, device=device)
+    field = DistanceField(vertices, faces, depth=4, bvh="morton", device=device)
     assert field.stats()["winding_walks_cut"] == 0
     thrown = vertices + np.random.default_rng(5).uniform(-0.6, 0.6, vertices.shape).astype(np.float32)
     field.update(thrown)
-    assert field.stats()["winding_walks_cut"] > 0
+    assert field.stats()["winding_walks_cut"] > 0 and field.stats()["domain_moves"] == 1
     _, values, _ = field.corner_samples()
     assert np.isfinite(values).all()
     field.update(vertices)
+    field.update(vertices)
+    assert field.stats()["bvh_relinks"] == 1
     assert field.stats()["winding_walks_cut"] == 0
+
+
+def thrown_out_of_its_box(vertices: np.ndarray, seed: int) -> np.ndarray:
+    """Every vertex thrown up to a fifth of the box's extent: a soup, whose box (and domain) is larger."""
+    extent = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
+    rng = np.random.default_rng(seed)
+    return (vertices + rng.uniform(-0.2, 0.2, vertices.shape) * extent).astype(np.float32)
+
+
+@pytest.mark.parametrize("name", ["spot", "stanford-bunny"])
+def test_a_tree_linked_on_a_soup_is_linked_again_once_the_mesh_is_calm(device, name):
+    """A frame that moves the domain links the Morton tree on its own triangles. Linked on a soup and refitted to the
+    calm mesh again, its leaves lie far apart, and every walk runs long. A calm frame whose winding walks met their
+    budget there is run again at once on a tree linked on itself (the bunny's: 5,701 walks on the CPU); one whose
+    walks did not (spot's) links it in the next frame. Then the spread, the walks and the answers are a fresh
+    object's."""
+    vertices, faces = meshes.load(name)
+    field = DistanceField(vertices, faces, depth=5, sign="winding", bvh="morton", device=device)
+    calm_spread = field.stats()["bvh_leaf_spread"]
+    field.update(thrown_out_of_its_box(vertices, seed=1))
+    assert field.stats()["domain_moves"] == 1
+    field.update(vertices)
+    first = field.stats()
+    if first["bvh_relinks"] == 1:  # run again: nothing of the misfit tree is left
+        assert first["winding_walks_cut"] == 0 and first["bvh_leaf_spread"] <= 1.1 * calm_spread
+    else:  # refitted to the soup's tree, which misfits it, but no walk was cut
+        assert first["winding_walks_cut"] == 0 and first["bvh_leaf_spread"] > 2.0 * calm_spread
+    if name == "stanford-bunny":
+        assert first["bvh_relinks"] == 1
+    field.update(vertices)  # the same vertices: a rigid frame, unless the tree is due to be linked again
+    relinked = field.stats()
+    assert relinked["bvh_relinks"] == 1 and relinked["domain_moves"] == 1
+    assert relinked["bvh_leaf_spread"] <= 1.1 * calm_spread and relinked["winding_walks_cut"] == 0
+    field.update(vertices)
+    assert field.stats()["bvh_relinks"] == 1  # and it stays
+
+    points = np.random.default_rng(2).uniform(vertices.min(axis=0), vertices.max(axis=0), (400, 3))
+    truth = oracle.signed_distance(points, vertices.astype(np.float64), faces)
+    got = field.query(points, mode="exact").distance
+    diagonal = oracle.bbox_diagonal(vertices)
+    clear = np.abs(truth) > tol.SIGN_MARGIN * diagonal
+    assert np.max(np.abs(np.abs(got) - np.abs(truth))) <= tol.EXACT_DISTANCE * diagonal
+    np.testing.assert_array_equal(got[clear] < 0, truth[clear] < 0)
+
+
+def test_an_animation_refits_its_tree_without_linking_it_again(device):
+    """Sixty frames of a dancer refit the tree linked on the first (their spread stays within 8% of it), and the
+    SAH tree, whose shape is kept, never measures a spread."""
+    frames, faces = meshes.load_sequence("vlasic_samba")
+    morton = DistanceField(frames[0], faces, depth=3, bvh="morton", device=device)
+    sah = DistanceField(frames[0], faces, depth=3, bvh="sah", device=device)
+    for vertices in frames[1:]:
+        morton.update(vertices)
+        sah.update(vertices)
+        assert morton.stats()["bvh_relinks"] == 0
+    assert sah.stats()["bvh_relinks"] == 0 and sah.stats()["bvh_leaf_spread"] == 0.0

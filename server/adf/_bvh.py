@@ -159,6 +159,7 @@ class Bvh:
         self.rim = b.array("bvh.rim", 3 * max(self.rim_count, 1), wp.vec3)
         self._cuts: dict[int, wp.array] = {}
         self.winding_cuts = b.array("bvh.winding_cuts", 1, wp.int32)  # zeroed by each frame, read with its report
+        self.leaf_spread = b.array("bvh.leaf_spread", 2, wp.int64)  # measure_spread's sums, read with the report
 
     def _allocate_geometry(self, *, empty_boxes: bool) -> None:
         """The arrays a refit writes in full: the triangles packed for the searches, the winding moments and the
@@ -297,6 +298,16 @@ class Bvh:
         if self.rim_count:
             wp.launch(_rim_corners, dim=self.rim_count, inputs=[vertices, self.rim_faces], outputs=[self.rim],
                       device=self.device)
+
+    def measure_spread(self, side: float) -> None:
+        """Queue the sums `spread` reads: over consecutive leaves, the distances between their centroids and the sizes
+        of their boxes, in fixed point of a domain of `side` (so that the sums do not depend on the order threads add
+        them in). A tree linked on Morton codes keeps neighbouring triangles in neighbouring leaves; refitted to a
+        frame far from the one it was linked on (a violent frame's triangles, then the calm mesh again), its
+        neighbouring leaves lie far apart and its boxes overlap, which slows every walk."""
+        self.leaf_spread.zero_()
+        wp.launch(_leaf_spread, dim=SPREAD_THREADS, inputs=[self.triangles, self.face_count, 2.0**32 / side],
+                  outputs=[self.leaf_spread], device=self.device)
 
     def cut(self, levels: int) -> wp.array:
         """The 4-wide view's entries `cut_bits(levels)` binary levels below the root (2^cut_bits(levels) of them, -1
@@ -506,6 +517,34 @@ def leaf_triangle(bvh: BvhView, leaf: int):
     b = load_vec4(bvh.triangles, 3 * leaf + 1)
     c = load_vec4(bvh.triangles, 3 * leaf + 2)
     return wp.vec3(a[0], a[1], a[2]), wp.vec3(b[0], b[1], b[2]), wp.vec3(c[0], c[1], c[2])
+
+
+SPREAD_THREADS = 4096  # threads of _leaf_spread, each one atomic add a sum (one per leaf waits on one address)
+
+
+@wp.func
+def _packed_centroid(triangles: wp.array(dtype=wp.vec4), leaf: int) -> wp.vec3:
+    a, b, c = triangles[3 * leaf], triangles[3 * leaf + 1], triangles[3 * leaf + 2]
+    return wp.vec3(a[0] + b[0] + c[0], a[1] + b[1] + c[1], a[2] + b[2] + c[2]) / 3.0
+
+
+@wp.kernel(enable_backward=False)
+def _leaf_spread(triangles: wp.array(dtype=wp.vec4), leaf_count: int, unit: float, sums: wp.array(dtype=wp.int64)):
+    """Thread t adds up every SPREAD_THREADS-th leaf from t: the distance from its centroid to the next leaf's, into
+    sums[0], and its box's diagonal, into sums[1], in units of 1 / `unit`."""
+    gap = float(0.0)
+    size = float(0.0)
+    k = wp.tid()
+    while k < leaf_count:
+        a, b, c = triangles[3 * k], triangles[3 * k + 1], triangles[3 * k + 2]
+        lo = wp.min(wp.min(wp.vec3(a[0], a[1], a[2]), wp.vec3(b[0], b[1], b[2])), wp.vec3(c[0], c[1], c[2]))
+        hi = wp.max(wp.max(wp.vec3(a[0], a[1], a[2]), wp.vec3(b[0], b[1], b[2])), wp.vec3(c[0], c[1], c[2]))
+        size += wp.length(hi - lo)
+        if k + 1 < leaf_count:
+            gap += wp.length(_packed_centroid(triangles, k + 1) - _packed_centroid(triangles, k))
+        k += SPREAD_THREADS
+    wp.atomic_add(sums, 0, wp.int64(gap * unit))
+    wp.atomic_add(sums, 1, wp.int64(size * unit))
 
 
 @wp.func
@@ -754,8 +793,8 @@ def _winding_number_function(careful: bool):
 
     def winding_number(bvh: BvhView, p: wp.vec3):
         """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018).
-        A walk opens at most `bvh.winding_budget` internal nodes; past that, a near node takes its expansion where
-        p lies beyond its radius and adds nothing where p lies within, and the walk counts itself in
+        A walk opens at most `bvh.winding_budget` internal nodes; the nodes still waiting then take their expansion
+        where p lies beyond their radius and are left out where it lies within, and the walk counts itself in
         `bvh.winding_cuts`."""
         total = float(0.0)
         cancelled = bool(False)
@@ -769,11 +808,10 @@ def _winding_number_function(careful: bool):
         nodes = stack_int()
         nodes[0] = 0
         count = int(1)
-        opened = int(0)
-        cut = bool(False)
-        while count > 0:
+        budget = bvh.winding_budget
+        while count > 0 and budget > 0:
             count -= 1
-            opened += 1
+            budget -= 1
             slot = 2 * nodes[count]
             for side in range(2):
                 child = bvh.slot_child[slot + side]
@@ -797,15 +835,18 @@ def _winding_number_function(careful: bool):
                     dist = wp.length(offset)
                     if dist > bvh.far_field * centre_radius[3]:
                         total += _far_field(bvh, child, offset / dist, dist)
-                    elif opened < bvh.winding_budget:
+                    else:
                         nodes[count] = child
                         count += 1
-                    else:
-                        cut = True
-                        if dist > centre_radius[3]:
-                            total += _far_field(bvh, child, offset / dist, dist)
-        if cut:
+        if count > 0:  # the budget is spent (a soup of large triangles): what waits is summed roughly, or left out
             wp.atomic_add(bvh.winding_cuts, 0, 1)
+            while count > 0:
+                count -= 1
+                centre_radius = load_vec4(bvh.node_moments, 4 * nodes[count])
+                offset = _xyz(centre_radius) - p
+                dist = wp.length(offset)
+                if dist > centre_radius[3]:
+                    total += _far_field(bvh, nodes[count], offset / dist, dist)
         return total * _INV_FOUR_PI, cancelled
 
     winding_number.__name__ = winding_number.__qualname__ = "winding_number_careful" if careful else "winding_number"

@@ -76,6 +76,8 @@ from badf.server.adf._tolerances import (
     MAX_KERNEL_BAND,
     MIN_BAND,
     QUERY_CHUNK,
+    RELINK_SPREAD,
+    RELINK_SPREAD_FLOOR,
     REDOMAIN_KEEP_SIDE,
     REDOMAIN_MIN_FILL,
     REDOMAIN_REFIT_ROOM,
@@ -287,6 +289,7 @@ class _Counters:
     scratch_given_back: int = 0  # runs of rigid frames long enough that the frame scratch was freed until a rebuild
     trims: int = 0  # calls of trim() that gave memory back
     winding_walks_cut: int = 0  # the last frame's winding-number walks cut short by their budget (WINDING_BUDGET)
+    bvh_relinks: int = 0  # frames that linked the BVH again, which had come to misfit the frames (_watch_tree)
 
 
 class DistanceField:
@@ -407,6 +410,10 @@ class DistanceField:
         self._rigid_run = 0  # rigid frames since the last rebuild
         self._scratch_kept_frames = _SCRATCH_GIVEN_BACK_AFTER
         self._counters = _Counters()
+        # the BVH's leaf spread (Bvh.measure_spread) in the last frame and in the last that linked the tree, and
+        # whether the next frame links it again because the tree has come to misfit the frames it is refitted to
+        self._tree_spread = self._linked_spread = 0.0
+        self._relink_due = False
 
         # the first frame's cell set is sized from the surface area it may refine: a region's share of it (a
         # small box at depth 10 kept 452 MiB of scratch sized for the whole mesh; thirteenth outside check)
@@ -495,7 +502,8 @@ class DistanceField:
         Raises InvalidInputError (and keeps the last good frame) on a wrong shape or non-finite value.
         """
         v = as_vertices(vertices, expected_count=self._vertex_count)
-        if self._rigid_test is not None and self._failed_update is None:
+        # a frame due to link the tree again is rebuilt, rigid or not: the exact queries walk the tree too
+        if self._rigid_test is not None and self._failed_update is None and not self._relink_due:
             wall = time.perf_counter()
             pose = self._rigid_test.pose(self._reference, v, self._rigid_tolerance)
             if pose is not None:
@@ -558,12 +566,18 @@ class DistanceField:
         if moved:
             self._domain = _Domain.fit(lo, hi, previous=self._domain)
             self._counters.domain_moves += 1
+        relink = self._relink_due and not moved  # a frame that moves the domain links the tree anyway
         # float32 frames are recentred on the device (the same float32 subtraction, without numpy's slow
         # (N, 3) broadcast); float64 ones on the host in float64, which keeps the precision far from the origin
         recentre = v.dtype == np.float32 and self._domain.recentres_float32
         try:
-            self._apply(v if recentre else self._domain.to_local(v), float(np.max(hi - lo)) * self._domain.scale,
-                        domain_moved=moved, recentre=recentre)
+            local, extent = v if recentre else self._domain.to_local(v), float(np.max(hi - lo)) * self._domain.scale
+            self._apply(local, extent, domain_moved=moved or relink, recentre=recentre)
+            if self._relink_due and self._counters.winding_walks_cut > 0:
+                # the tree misfits this frame so badly that its winding walks met their budget (a calm frame on a tree
+                # linked on a violent one): its sides may be estimates, so it runs again on a tree linked on itself
+                self._apply(local, extent, domain_moved=True, recentre=recentre)
+                relink = True
         except BaseException as error:
             # Valid input that failed on the way (out of device memory, a device fault): the buffers may hold
             # part of this frame and part of the last, so the object answers nothing until a frame goes
@@ -575,6 +589,7 @@ class DistanceField:
         self._failed_update = None
         self._pose = None
         self._rigid_run = 0
+        self._counters.bvh_relinks += relink
         self._keep_reference(v, lo, hi)
 
     def _keep_reference(self, v: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
@@ -829,6 +844,8 @@ class DistanceField:
             "scratch_given_back": c.scratch_given_back,
             "trims": c.trims,
             "winding_walks_cut": c.winding_walks_cut,
+            "bvh_relinks": c.bvh_relinks,
+            "bvh_leaf_spread": round(self._tree_spread, 3),
             "queries": c.queries,
             "query_points": c.query_points,
             "slices": c.slices,
@@ -888,7 +905,20 @@ class DistanceField:
                 self._planned = True
             self._corners.keep_frame(self._report_on_device, self._fits_at, queued=self._keep_queued)
         self._watch_plan()
+        self._watch_tree(linked=domain_moved)
         self._counters.last_update_wall_ms = (time.perf_counter() - wall) * 1e3
+
+    def _watch_tree(self, *, linked: bool) -> None:
+        """After a frame: whether the next one links the BVH again. A tree linked on Morton codes is refitted to later
+        frames while the domain holds them; once its leaves lie RELINK_SPREAD times as far apart for their size as
+        in the frame it was linked on (a violent frame's soup, then the calm mesh: every walk then runs long), the
+        next frame links it on its own codes."""
+        if linked:
+            self._linked_spread, self._relink_due = self._tree_spread, False
+        else:
+            # a tree linked on a frame of no spread (every triangle shrunk to a point) is measured against a floor
+            reference = max(self._linked_spread, RELINK_SPREAD_FLOOR)
+            self._relink_due = self._bvh.shape is None and self._tree_spread > RELINK_SPREAD * reference
 
     def _watch_plan(self) -> None:
         """After a frame: give back a plan that has long held far more than the frames need. Once each of
@@ -959,6 +989,8 @@ class DistanceField:
                     self._bvh.build(self._vertices, self._faces, origin, side)
             with clock.stage("refit"):
                 self._bvh.refit(self._vertices, self._faces)
+                if self._bvh.shape is None:  # a tree linked on Morton codes, which a frame far from its own misfits
+                    self._bvh.measure_spread(side)
             with clock.stage("normals"):
                 self._normals.update(self._vertices)
         o = self._octree
@@ -1033,7 +1065,7 @@ class DistanceField:
         """Gather the frame's counts on the device, with whether each fits its capacity, and queue the keeping of
         the frame (which takes effect only if they all do) and one copy of the counts to the host. The layout
         (`_take_report`): the sizes, the sign's frame method, the levels' first nodes, whether parts overlap, whether
-        seams tore, the surface's own cells, whether it all fitted, the winding walks cut short."""
+        seams tore, the surface's own cells, whether it all fitted, the winding walks cut short, the leaf spread."""
         sizes = self._octree.report()
         assert len(sizes) == _REPORT_SIZES
         (a0, i0, c0), (a1, i1, c1), (a2, i2, c2), (a3, i3, c3) = sizes
@@ -1041,10 +1073,10 @@ class DistanceField:
         wp.launch(_gather_report, dim=1,
                   inputs=[a0, i0, c0, a1, i1, c1, a2, i2, c2, a3, i3, c3, n.winding_frame, self._octree.level_starts,
                           self._depth + 1, n.parts_overlap, n.seams_torn, self._octree.surface_count,
-                          self._bvh.winding_cuts],
+                          self._bvh.winding_cuts, self._bvh.leaf_spread],
                   outputs=[self._report_on_device], device=self._device)
         self._keep_queued = self._corners.queue_keep(self._report_on_device, self._fits_at)
-        wp.copy(self._report, self._report_on_device, count=self._fits_at + 2)
+        wp.copy(self._report, self._report_on_device, count=self._fits_at + 3)
 
     @property
     def _fits_at(self) -> int:
@@ -1063,6 +1095,7 @@ class DistanceField:
         self._octree.take_counts(counts, report[k + 1 : k + 2 + self._depth], int(report[k + 4 + self._depth]))
         self._normals.set_frame_method(int(report[k]), int(report[k + 2 + self._depth]), int(report[k + 3 + self._depth]))
         self._counters.winding_walks_cut = int(report[self._fits_at + 1])
+        self._tree_spread = int(report[self._fits_at + 2]) / _SPREAD_UNIT
         return True
 
     # -- for tests and tools --------------------------------------------------------------------------
@@ -1096,9 +1129,10 @@ class DistanceField:
 
 
 # The frame's report: four sizes, the sign's frame method, up to MAX_DEPTH + 1 levels' first nodes, three flags, the
-# winding walks cut short
+# winding walks cut short, the BVH's leaf spread (Bvh.measure_spread: gaps over sizes) in 1 / _SPREAD_UNIT
 _REPORT_SIZES = 4
 _REPORT_LENGTH = 32
+_SPREAD_UNIT = wp.constant(256)
 
 
 @wp.kernel(enable_backward=False)
@@ -1107,7 +1141,7 @@ def _gather_report(a0: wp.array(dtype=wp.int32), i0: int, c0: int, a1: wp.array(
                    winding_frame: wp.array(dtype=wp.int32), level_starts: wp.array(dtype=wp.int32), levels: int,
                    parts_overlap: wp.array(dtype=wp.int32), seams_torn: wp.array(dtype=wp.int32),
                    surface_count: wp.array(dtype=wp.int32), winding_cuts: wp.array(dtype=wp.int32),
-                   report: wp.array(dtype=wp.int32)):
+                   leaf_spread: wp.array(dtype=wp.int64), report: wp.array(dtype=wp.int32)):
     """One thread writes the frame's report (`DistanceField._queue_report`'s layout)."""
     report[0] = a0[i0]
     report[1] = a1[i1]
@@ -1122,6 +1156,10 @@ def _gather_report(a0: wp.array(dtype=wp.int32), i0: int, c0: int, a1: wp.array(
     fits = a0[i0] <= c0 and a1[i1] <= c1 and a2[i2] <= c2 and a3[i3] <= c3
     report[8 + levels] = wp.where(fits, 1, 0)
     report[9 + levels] = winding_cuts[0]
+    spread = float(0.0)
+    if leaf_spread[1] > wp.int64(0):
+        spread = wp.min(float(leaf_spread[0]) / float(leaf_spread[1]), 1.0e6)
+    report[10 + levels] = int(spread * float(_SPREAD_UNIT))
 
 
 @wp.kernel(enable_backward=False)

@@ -75,6 +75,14 @@ WINDING_FAR_FIELD_SAH = 2.25
 # the corners times the faces (BUDGET_SOUP_PLACEHOLDER). Each walk cut short is counted (`stats()["winding_walks_cut"]`).
 WINDING_BUDGET = 2048
 
+# A BVH linked on Morton codes is refitted while the domain holds the frames. Consecutive leaves then hold neighbouring
+# triangles, so their centroids lie about a triangle's size apart (the leaf spread, Bvh.measure_spread). A tree linked on
+# a frame unlike the later ones (a violent frame's soup) keeps that frame's order: refitted to the calm mesh again, its
+# leaves lie far apart for their size and every walk runs long. Once the spread reaches RELINK_SPREAD times the one
+# measured when the tree was linked, the next frame links it again (SPREAD_PLACEHOLDER).
+RELINK_SPREAD = 2.0
+RELINK_SPREAD_FLOOR = 0.25
+
 # An open mesh's winding numbers in queries are corrected by its rim (`_sign.rim_fans`: fans C that close the faces'
 # boundary chain, so w_S + w_C is a whole number off the surface). Where a walk's |w| lies within RIM_DOUBT of 1/2 (its
 # expansions erred by up to 0.06 on the shared meshes, and 0.09 on frames that run through themselves), w becomes
