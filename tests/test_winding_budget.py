@@ -140,3 +140,19 @@ def test_an_animation_refits_its_tree_without_linking_it_again(device):
         sah.update(vertices)
         assert morton.stats()["bvh_relinks"] == 0
     assert sah.stats()["bvh_relinks"] == 0 and sah.stats()["bvh_leaf_spread"] == 0.0
+
+
+def test_a_run_of_soups_is_not_run_twice(device):
+    """Soups that keep the domain each meet the budget on any tree, and their leaves lie no farther apart than their
+    large triangles: a soup on another soup's tree is not run again at once (each would cost twice), and the tree is
+    linked every other frame."""
+    vertices, faces = meshes.load("spot")
+    field = DistanceField(vertices, faces, depth=4, sign="winding", bvh="morton", rigid="off", device=device)
+    extent = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
+    lo, hi = vertices.min(axis=0) - 0.1 * extent, vertices.max(axis=0) + 0.1 * extent
+    for seed in range(5):
+        thrown = vertices + np.random.default_rng(seed).uniform(-0.2, 0.2, vertices.shape) * extent
+        field.update(np.clip(thrown, lo, hi).astype(np.float32))
+        assert field.stats()["winding_walks_cut"] > 0
+    assert field.stats()["domain_moves"] == 1
+    assert field.stats()["bvh_relinks"] == 2  # frames 3 and 5; one a frame would be 4

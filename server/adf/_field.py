@@ -78,6 +78,7 @@ from badf.server.adf._tolerances import (
     QUERY_CHUNK,
     RELINK_SPREAD,
     RELINK_SPREAD_FLOOR,
+    RERUN_SPREAD,
     REDOMAIN_KEEP_SIDE,
     REDOMAIN_MIN_FILL,
     REDOMAIN_REFIT_ROOM,
@@ -573,9 +574,11 @@ class DistanceField:
         try:
             local, extent = v if recentre else self._domain.to_local(v), float(np.max(hi - lo)) * self._domain.scale
             self._apply(local, extent, domain_moved=moved or relink, recentre=recentre)
-            if self._relink_due and self._counters.winding_walks_cut > 0:
+            if self._relink_due and self._counters.winding_walks_cut > 0 and self._tree_spread > RERUN_SPREAD:
                 # the tree misfits this frame so badly that its winding walks met their budget (a calm frame on a tree
-                # linked on a violent one): its sides may be estimates, so it runs again on a tree linked on itself
+                # linked on a violent one): its sides may be estimates, so it runs again on a tree linked on itself.
+                # A soup's own walks meet the budget on any tree, and its leaves lie no farther apart than its large
+                # triangles: it is not run again, and the next frame links the tree.
                 self._apply(local, extent, domain_moved=True, recentre=recentre)
                 relink = True
         except BaseException as error:

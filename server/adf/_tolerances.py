@@ -68,20 +68,27 @@ SURFACE_SNAP = 1.0e-6
 WINDING_FAR_FIELD = 2.0
 WINDING_FAR_FIELD_SAH = 2.25
 
-# A winding-number walk opens at most this many internal nodes; past it, a node still near the point is summed by its
-# expansion where the point lies outside the node's radius and left out where it lies within (`BvhView.winding_budget`).
-# A sound surface needs few: near a surface a walk opens a few nodes a level (BUDGET_PLACEHOLDER). A soup of large
-# triangles needs nearly every node at every point, as no node is far from anything: without a budget its frame cost
-# the corners times the faces (BUDGET_SOUP_PLACEHOLDER). Each walk cut short is counted (`stats()["winding_walks_cut"]`).
+# A winding-number walk opens at most this many internal nodes; the nodes still waiting then take their expansion where
+# the point lies beyond their radius and are left out where it lies within (`BvhView.winding_budget`), and the walk is
+# counted (`stats()["winding_walks_cut"]`). Near a sound surface a walk opens a few nodes a level: the shared meshes at
+# depths 5 to 9, one subdivided to 1.4 million faces and one with doubled faces needed fewer than 1,024 at every corner
+# (CPU, 2026-12-06; docs/engine.md, "Fast winding numbers"). In a soup of large triangles no node is far from any point,
+# and without a budget a frame cost the corners times the faces: the bunny's violent frame took 1.92 s on an H100 at
+# depth 7, 0.27 s with this budget.
 WINDING_BUDGET = 2048
 
 # A BVH linked on Morton codes is refitted while the domain holds the frames. Consecutive leaves then hold neighbouring
-# triangles, so their centroids lie about a triangle's size apart (the leaf spread, Bvh.measure_spread). A tree linked on
-# a frame unlike the later ones (a violent frame's soup) keeps that frame's order: refitted to the calm mesh again, its
-# leaves lie far apart for their size and every walk runs long. Once the spread reaches RELINK_SPREAD times the one
-# measured when the tree was linked, the next frame links it again (SPREAD_PLACEHOLDER).
+# triangles, so their centroids lie less than a triangle's box apart (the leaf spread, Bvh.measure_spread: 0.6 to 0.8 on
+# the shared meshes). A tree linked on a frame unlike the later ones (a violent frame's soup) keeps that frame's order:
+# refitted to the calm mesh again, the bunny's spread was 9.6 and every walk ran long. Once the spread passes
+# RELINK_SPREAD times the one at the last link (or the floor, for a tree linked on triangles of no size), the next frame
+# links the tree again. Sixty frames of a dancer and of a galloping horse stayed within 8% of their first frame's.
 RELINK_SPREAD = 2.0
 RELINK_SPREAD_FLOOR = 0.25
+# A frame whose winding walks met their budget on a tree due to be linked again runs again at once on a tree of its own
+# where its spread passes this: the calm mesh on a soup's tree measured 3.3 (spot) to 12.5 (the armadillo), a soup on
+# another soup's tree 0.52, whose walks meet the budget on any tree (CPU and H100, 2026-12-06).
+RERUN_SPREAD = 1.0
 
 # An open mesh's winding numbers in queries are corrected by its rim (`_sign.rim_fans`: fans C that close the faces'
 # boundary chain, so w_S + w_C is a whole number off the surface). Where a walk's |w| lies within RIM_DOUBT of 1/2 (its
