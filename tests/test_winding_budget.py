@@ -1,5 +1,8 @@
-"""The winding walks' budget (WINDING_BUDGET): a sound surface never meets it, and a soup of large triangles, whose
-walks would otherwise open nearly every node at every corner, is cut short there with its distances still exact."""
+"""The winding walks' budget (WINDING_BUDGET): it binds only a soup (SOUP_AREA) or a tree that misfits its frame, so
+a sound surface's walks run whole, also where they open more nodes than the budget (long thin triangles), and a soup of
+large triangles, whose walks would otherwise open nearly every node at every corner, is cut short there with its
+distances still exact. A Morton tree linked on such a soup, which misfits the calm frames after it, is linked again
+(`bvh_relinks`)."""
 
 from __future__ import annotations
 
@@ -20,12 +23,18 @@ def soup(count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     return vertices, np.arange(3 * count, dtype=np.int32).reshape(-1, 3)
 
 
-@pytest.mark.parametrize("name", ["spot", "homer", "torus", "sheet"])
+def slivers():
+    """A closed cylinder of 2,000 sections: 8,000 triangles as long as the cylinder (or its radius) and 1/600 as wide.
+    Every node of a tree over them is near every point beside the cylinder, so its walks open nearly all 7,999."""
+    return meshes.wire(radius=0.5, height=2.0, sections=2000)
+
+
+@pytest.mark.parametrize("name", ["spot", "homer", "torus", "sheet", "slivers"])
 def test_no_walk_of_a_sound_surface_is_cut(device, name):
-    """At the default budget (2048 nodes opened; the shared meshes' corner walks opened fewer than 512 at depths 5,
-    7 and 9), no walk of a sound surface's frame is cut, and its corners' signs are the oracle's."""
-    vertices, faces = meshes.load(name) if name in ("spot", "homer") else meshes.GENERATED[name]()
-    field = DistanceField(vertices, faces, depth=6, sign="winding", device=device)
+    """No walk of a sound surface's frame is cut, and its corners' signs are the oracle's: the shared meshes' corner
+    walks open fewer than 512 nodes (at depths 5, 7 and 9), the slivers' more than the budget (2,048), and run whole."""
+    vertices, faces = slivers() if name == "slivers" else meshes.load(name)
+    field = DistanceField(vertices, faces, depth=5 if name == "slivers" else 6, sign="winding", device=device)
     assert field.stats()["winding_walks_cut"] == 0
     positions, values, _ = field.corner_samples()
     pick = np.random.default_rng(0).choice(len(positions), min(len(positions), 3000), replace=False)
@@ -35,10 +44,20 @@ def test_no_walk_of_a_sound_surface_is_cut(device, name):
     np.testing.assert_array_equal(values[pick][clear] < 0, np.abs(w[clear]) > 0.5)
 
 
+def test_slivers_would_meet_the_budget_if_it_bound_them(device, monkeypatch):
+    """The slivers' walks do open more than the budget: counted as a soup (SOUP_AREA 0, which every surface passes),
+    their frame cuts them. Their surface is 0.42 of its root's sphere's area, a soup's many times it."""
+    monkeypatch.setattr(_bvh, "SOUP_AREA", 0.0)
+    vertices, faces = slivers()
+    field = DistanceField(vertices, faces, depth=4, sign="winding", device=device)
+    assert field.stats()["winding_walks_cut"] > 0
+
+
 def test_a_soup_frame_is_cut_short_with_its_distances_exact(device, monkeypatch):
     """A budget below what a soup's walks need cuts them (counted per frame); the distances' magnitudes, which the
-    searches give, are those of an uncut twin bit for bit and the oracle's, and every value is finite."""
-    vertices, faces = soup(400, seed=3)
+    searches give, are those of an uncut twin bit for bit and the oracle's, and every value is finite. (2,000 random
+    triangles in the unit cube: 32 times their root's sphere's area, a soup; 400 of them are 6.4 times, which is not.)"""
+    vertices, faces = soup(2000, seed=3)
     budgets = {"cut": 8, "uncut": 2**30}
     fields = {}
     for label, budget in budgets.items():
@@ -72,6 +91,8 @@ def test_a_closed_mesh_thrown_into_a_soup_counts_its_cut_walks(device, monkeypat
     linked on the soup: the first calm frame after it runs on that tree and the next links it again (on CUDA, 4,096
     walks of the first calm frame's overlap watch met a budget of 128 there). Then no walk is cut."""
     monkeypatch.setattr(_bvh, "WINDING_BUDGET", 128)  # the sphere's walks (its frames' overlap watch) need fewer
+    # the sphere's 1,280 triangles thrown pile up 3.2 times the area of the sphere that bounds them: a soup at this bar
+    monkeypatch.setattr(_bvh, "SOUP_AREA", 1.0)
     vertices, faces = meshes.sphere()
     field = DistanceField(vertices, faces, depth=4, bvh="morton", device=device)
     assert field.stats()["winding_walks_cut"] == 0

@@ -48,7 +48,8 @@ from badf.server.adf._geometry import (
     thread_fence,
     triangle_distance_sq,
 )
-from badf.server.adf._tolerances import BOX_SLACK, RIM_TRUST, WINDING_BUDGET, WINDING_FAR_FIELD, WINDING_FAR_FIELD_SAH
+from badf.server.adf._tolerances import (BOX_SLACK, RELINK_SPREAD, RELINK_SPREAD_FLOOR, RERUN_SPREAD, RIM_TRUST,
+                                         SOUP_AREA, WINDING_BUDGET, WINDING_FAR_FIELD, WINDING_FAR_FIELD_SAH)
 
 _BOX_SLACK = wp.constant(BOX_SLACK)
 _INV_FOUR_PI = wp.constant(1.0 / (4.0 * math.pi))
@@ -98,8 +99,14 @@ class BvhView:
     keys_in_leaf_order: int
     # node radii beyond which a winding-number walk takes a node's expansion (WINDING_FAR_FIELD, by the tree's shape)
     far_field: float
-    # internal nodes a winding-number walk opens at most (WINDING_BUDGET), and the count of walks cut short by it
+    # internal nodes a winding-number walk opens at most (WINDING_BUDGET) in a soup (a surface of more than
+    # `soup_area` times its root's sphere's area: SOUP_AREA) or on a tree that misfits the frame (`leaf_spread`),
+    # and the count of walks cut short by it
     winding_budget: int
+    soup_area: float
+    winding_cuts: wp.array(dtype=wp.int32)
+    # Bvh.measure_spread's sums: this frame's (gaps, sizes), then those of the frame the tree was linked on
+    leaf_spread: wp.array(dtype=wp.int64)
     winding_cuts: wp.array(dtype=wp.int32)
     # Fast-winding-number moments of each internal node i, four vec4 (a one-element array when the sign
     # does not need them). A single triangle's are worked out from it where needed (`leaf_moments`): its
@@ -132,7 +139,7 @@ class Bvh:
         self.face_count = face_count
         self.shape = shape if face_count > 1 else None
         self.far_field = WINDING_FAR_FIELD if self.shape is None else WINDING_FAR_FIELD_SAH
-        self.winding_budget = WINDING_BUDGET
+        self.winding_budget, self.soup_area = WINDING_BUDGET, SOUP_AREA
         self._shape_linked = False
         self.internal_count = face_count - 1
         self.code_levels, self.index_bits = code_layout(face_count)
@@ -159,7 +166,8 @@ class Bvh:
         self.rim = b.array("bvh.rim", 3 * max(self.rim_count, 1), wp.vec3)
         self._cuts: dict[int, wp.array] = {}
         self.winding_cuts = b.array("bvh.winding_cuts", 1, wp.int32)  # zeroed by each frame, read with its report
-        self.leaf_spread = b.array("bvh.leaf_spread", 2, wp.int64)  # measure_spread's sums, read with the report
+        # measure_spread's sums, this frame's (read with its report) and the linking frame's (zero: never measured)
+        self.leaf_spread = b.array("bvh.leaf_spread", 4, wp.int64)
 
     def _allocate_geometry(self, *, empty_boxes: bool) -> None:
         """The arrays a refit writes in full: the triangles packed for the searches, the winding moments and the
@@ -299,15 +307,18 @@ class Bvh:
             wp.launch(_rim_corners, dim=self.rim_count, inputs=[vertices, self.rim_faces], outputs=[self.rim],
                       device=self.device)
 
-    def measure_spread(self, side: float) -> None:
-        """Queue the sums `spread` reads: over consecutive leaves, the distances between their centroids and the sizes
-        of their boxes, in fixed point of a domain of `side` (so that the sums do not depend on the order threads add
-        them in). A tree linked on Morton codes keeps neighbouring triangles in neighbouring leaves; refitted to a
-        frame far from the one it was linked on (a violent frame's triangles, then the calm mesh again), its
-        neighbouring leaves lie far apart and its boxes overlap, which slows every walk."""
-        self.leaf_spread.zero_()
+    def measure_spread(self, side: float, *, linked: bool) -> None:
+        """Queue the two sums of the leaf spread (`spread_units` divides them): over consecutive leaves, the distances
+        between their centroids, and the diagonals of their boxes, in fixed point of a domain of `side` (so that the
+        sums do not depend on the order threads add them in); kept as the linking frame's too where the frame
+        `linked` the tree. A tree linked on Morton codes keeps neighbouring triangles in neighbouring leaves;
+        refitted to a frame far from the one it was linked on (a violent frame's triangles, then the calm mesh
+        again), its neighbouring leaves lie far apart and its boxes overlap, which slows every walk."""
+        self.leaf_spread[0:2].zero_()
         wp.launch(_leaf_spread, dim=SPREAD_THREADS, inputs=[self.triangles, self.face_count, 2.0**32 / side],
                   outputs=[self.leaf_spread], device=self.device)
+        if linked:
+            wp.launch(_keep_linked_spread, dim=1, inputs=[self.leaf_spread], device=self.device)
 
     def cut(self, levels: int) -> wp.array:
         """The 4-wide view's entries `cut_bits(levels)` binary levels below the root (2^cut_bits(levels) of them, -1
@@ -336,7 +347,8 @@ class Bvh:
         v.key_leaf = self.key_leaf
         v.keys_in_leaf_order = 1 if self.shape is None else 0
         v.far_field = self.far_field
-        v.winding_budget, v.winding_cuts = self.winding_budget, self.winding_cuts
+        v.winding_budget, v.soup_area, v.winding_cuts = self.winding_budget, self.soup_area, self.winding_cuts
+        v.leaf_spread = self.leaf_spread
         v.node_moments = self.node_moments
         v.wide_planes, v.wide_child, v.wide_first = self.wide.planes, self.wide.child, self.wide.first
         v.rim, v.rim_count = self.rim, self.rim_count
@@ -545,6 +557,37 @@ def _leaf_spread(triangles: wp.array(dtype=wp.vec4), leaf_count: int, unit: floa
         k += SPREAD_THREADS
     wp.atomic_add(sums, 0, wp.int64(gap * unit))
     wp.atomic_add(sums, 1, wp.int64(size * unit))
+
+
+@wp.kernel(enable_backward=False)
+def _keep_linked_spread(sums: wp.array(dtype=wp.int64)):
+    sums[2] = sums[0]
+    sums[3] = sums[1]
+
+
+SPREAD_UNIT = wp.constant(256)  # a leaf spread's unit in the frame's report, 1 / SPREAD_UNIT
+_RELINK_SPREAD = wp.constant(RELINK_SPREAD)
+_RELINK_FLOOR_UNITS = wp.constant(int(RELINK_SPREAD_FLOOR * 256))
+_RERUN_UNITS = wp.constant(int(RERUN_SPREAD * 256))
+
+
+@wp.func
+def spread_units(gaps: wp.int64, sizes: wp.int64) -> int:
+    """The leaf spread (gaps over sizes, at most 1e6; 0 where nothing was measured) in 1 / SPREAD_UNIT."""
+    spread = float(0.0)
+    if sizes > wp.int64(0):
+        spread = wp.min(float(gaps) / float(sizes), 1.0e6)
+    return int(spread * float(SPREAD_UNIT))
+
+
+@wp.func
+def tree_misfits(bvh: BvhView) -> bool:
+    """Whether the tree misfits this frame so badly that the frame runs again on a tree linked on itself once a walk
+    is cut (`DistanceField._rebuild`, which decides it from the same sums in the frame's report): the leaf spread
+    past RELINK_SPREAD times the linking frame's (or the floor) and past RERUN_SPREAD."""
+    spread = spread_units(bvh.leaf_spread[0], bvh.leaf_spread[1])
+    linked = wp.max(spread_units(bvh.leaf_spread[2], bvh.leaf_spread[3]), _RELINK_FLOOR_UNITS)
+    return spread > _RERUN_UNITS and float(spread) > _RELINK_SPREAD * float(linked)
 
 
 @wp.func
@@ -785,6 +828,15 @@ def _far_field(bvh: BvhView, node: int, u: wp.vec3, dist: float) -> float:
     return (wp.dot(_xyz(load_vec4(bvh.node_moments, 4 * node + 1)), u) + first) / (dist * dist)
 
 
+@wp.func
+def is_soup(bvh: BvhView) -> bool:
+    """Whether the frame's surface is a soup: more than `bvh.soup_area` times the area of the sphere its root bounds
+    (SOUP_AREA). A closed convex surface inside the sphere has at most the sphere's area; large triangles thrown across
+    each other pile up many times it."""
+    radius = load_vec4(bvh.node_moments, 0)[3]
+    return load_vec4(bvh.node_moments, 1)[3] > bvh.soup_area * 4.0 * wp.pi * radius * radius
+
+
 def _winding_number_function(careful: bool):
     """The winding number's walk; returns (w, whether a near triangle's float32 solid angle cancelled, so
     that w may be wrong). `careful`: such solid angles are worked out in float64 (`solid_angle_careful`),
@@ -793,9 +845,10 @@ def _winding_number_function(careful: bool):
 
     def winding_number(bvh: BvhView, p: wp.vec3):
         """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018).
-        A walk opens at most `bvh.winding_budget` internal nodes; the nodes still waiting then take their expansion
+        In a soup (`is_soup`), or on a tree that misfits the frame (`tree_misfits`: the frame then runs again), a
+        walk opens at most `bvh.winding_budget` internal nodes; the nodes still waiting then take their expansion
         where p lies beyond their radius and are left out where it lies within, and the walk counts itself in
-        `bvh.winding_cuts`."""
+        `bvh.winding_cuts`. Elsewhere a walk runs whole, however many nodes it opens."""
         total = float(0.0)
         cancelled = bool(False)
         if bvh.internal_count == 0:
@@ -809,7 +862,8 @@ def _winding_number_function(careful: bool):
         nodes[0] = 0
         count = int(1)
         budget = bvh.winding_budget
-        while count > 0 and budget > 0:
+        bounded = is_soup(bvh) or tree_misfits(bvh)
+        while count > 0 and (budget > 0 or not bounded):
             count -= 1
             budget -= 1
             slot = 2 * nodes[count]

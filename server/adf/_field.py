@@ -16,7 +16,7 @@ import numpy as np
 import warp as wp
 
 from badf.server.adf._buffers import DeviceBuffers, HostStaged, SideStream
-from badf.server.adf._bvh import Bvh
+from badf.server.adf._bvh import SPREAD_UNIT, Bvh, spread_units
 from badf.server.adf._bvh_shape import Shape, resolve_shape, sah_shape
 from badf.server.adf._clock import StageClock
 from badf.server.adf._distance import (
@@ -289,7 +289,10 @@ class _Counters:
     plans_given_back: int = 0  # plans that long held far more than the frames needed, sized down (_watch_plan)
     scratch_given_back: int = 0  # runs of rigid frames long enough that the frame scratch was freed until a rebuild
     trims: int = 0  # calls of trim() that gave memory back
-    winding_walks_cut: int = 0  # the last frame's winding-number walks cut short by their budget (WINDING_BUDGET)
+    # the last frame's winding-number walks cut short by their budget (WINDING_BUDGET). On the CPU back-end, whose
+    # chunks of walks run side by side and whose atomic adds are not atomic between them, the count may fall a few
+    # short (15,846 to 15,849 for one frame); only whether it is zero decides anything
+    winding_walks_cut: int = 0
     bvh_relinks: int = 0  # frames that linked the BVH again, which had come to misfit the frames (_watch_tree)
 
 
@@ -578,8 +581,11 @@ class DistanceField:
                 # the tree misfits this frame so badly that its winding walks met their budget (a calm frame on a tree
                 # linked on a violent one): its sides may be estimates, so it runs again on a tree linked on itself.
                 # A soup's own walks meet the budget on any tree, and its leaves lie no farther apart than its large
-                # triangles: it is not run again, and the next frame links the tree.
+                # triangles: it is not run again, and the next frame links the tree. The frame's wall time is both
+                # runs'; its stage times are the second's.
+                first_wall_ms = self._counters.last_update_wall_ms
                 self._apply(local, extent, domain_moved=True, recentre=recentre)
+                self._counters.last_update_wall_ms += first_wall_ms
                 relink = True
         except BaseException as error:
             # Valid input that failed on the way (out of device memory, a device fault): the buffers may hold
@@ -993,7 +999,7 @@ class DistanceField:
             with clock.stage("refit"):
                 self._bvh.refit(self._vertices, self._faces)
                 if self._bvh.shape is None:  # a tree linked on Morton codes, which a frame far from its own misfits
-                    self._bvh.measure_spread(side)
+                    self._bvh.measure_spread(side, linked=domain_moved)
             with clock.stage("normals"):
                 self._normals.update(self._vertices)
         o = self._octree
@@ -1098,7 +1104,7 @@ class DistanceField:
         self._octree.take_counts(counts, report[k + 1 : k + 2 + self._depth], int(report[k + 4 + self._depth]))
         self._normals.set_frame_method(int(report[k]), int(report[k + 2 + self._depth]), int(report[k + 3 + self._depth]))
         self._counters.winding_walks_cut = int(report[self._fits_at + 1])
-        self._tree_spread = int(report[self._fits_at + 2]) / _SPREAD_UNIT
+        self._tree_spread = int(report[self._fits_at + 2]) / SPREAD_UNIT
         return True
 
     # -- for tests and tools --------------------------------------------------------------------------
@@ -1132,10 +1138,9 @@ class DistanceField:
 
 
 # The frame's report: four sizes, the sign's frame method, up to MAX_DEPTH + 1 levels' first nodes, three flags, the
-# winding walks cut short, the BVH's leaf spread (Bvh.measure_spread: gaps over sizes) in 1 / _SPREAD_UNIT
+# winding walks cut short, the BVH's leaf spread (Bvh.measure_spread: gaps over sizes) in 1 / SPREAD_UNIT
 _REPORT_SIZES = 4
 _REPORT_LENGTH = 32
-_SPREAD_UNIT = wp.constant(256)
 
 
 @wp.kernel(enable_backward=False)
@@ -1159,10 +1164,7 @@ def _gather_report(a0: wp.array(dtype=wp.int32), i0: int, c0: int, a1: wp.array(
     fits = a0[i0] <= c0 and a1[i1] <= c1 and a2[i2] <= c2 and a3[i3] <= c3
     report[8 + levels] = wp.where(fits, 1, 0)
     report[9 + levels] = winding_cuts[0]
-    spread = float(0.0)
-    if leaf_spread[1] > wp.int64(0):
-        spread = wp.min(float(leaf_spread[0]) / float(leaf_spread[1]), 1.0e6)
-    report[10 + levels] = int(spread * float(_SPREAD_UNIT))
+    report[10 + levels] = spread_units(leaf_spread[0], leaf_spread[1])
 
 
 @wp.kernel(enable_backward=False)

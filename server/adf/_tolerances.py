@@ -76,6 +76,14 @@ WINDING_FAR_FIELD_SAH = 2.25
 # and without a budget a frame cost the corners times the faces: the bunny's violent frame took 1.92 s on an H100 at
 # depth 7, 0.27 s with this budget.
 WINDING_BUDGET = 2048
+# The budget binds only a soup: a frame whose surface area passes this many times the area of the sphere its BVH's
+# root bounds (a closed convex surface inside a sphere has at most the sphere's area); or a tree that misfits the frame
+# (RERUN_SPREAD below), whose frame runs again. A sound surface's walks may open more nodes than the budget, where its
+# triangles are long and thin (a closed cylinder of 2,000 sections, 8,000 faces: every node is near every point beside
+# it; cut walks signed 199 of 2,989 points wrongly, third outside check), and run whole. Measured at the root (CPU,
+# 2026-12-06): the shared meshes 0.18 to 0.32 sphere areas, that cylinder 0.42, a sheet folded into 40 layers 4.1; the
+# shared meshes' vertices thrown a fifth of their extent 10 (spot) to 138 (the armadillo), a twentieth 1.2 to 14.5.
+SOUP_AREA = 8.0
 
 # A BVH linked on Morton codes is refitted while the domain holds the frames. Consecutive leaves then hold neighbouring
 # triangles, so their centroids lie less than a triangle's box apart (the leaf spread, Bvh.measure_spread: 0.6 to 0.8 on

@@ -1,0 +1,122 @@
+"""Probe, not part of the product: what binding the winding walks' budget only to soups (SOUP_AREA) costs and buys.
+
+    python3 bench/probes/probe_soup_gate.py [MESH.npz ...] [--device cuda:0] [--depth 7] [--sections 2000]
+        [--noise 0.02 0.05 0.2] [--rounds 2] [--out F.json]
+
+Cases: a closed cylinder of `--sections` sections (long thin triangles, a sound surface whose walks open more nodes
+than the budget) signed by winding numbers, and each mesh's frame with every vertex thrown up to each `--noise` of
+the box's extent, kept in the box, after three calm frames (sign "auto"). Each case runs under three settings,
+alternated over rounds in one process (the settings are fields of the BVH's view, read when an object is made):
+
+    gated   the engine's: the budget binds where the frame's area passes SOUP_AREA sphere areas
+    always  the budget binds every walk (the engine before the gate)
+    never   no budget (the reference for the sides)
+
+For each: the frame's wall time (synchronised), its walks cut, the frame's area in sphere areas (at the BVH's root),
+and the corners whose side differs from "never"'s; for the cylinder also the corners off the surface whose side
+differs from the solid's (inside: radius < 0.5 and |z| < 1).
+"""
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+import trimesh
+import warp as wp
+
+sys.path.insert(0, __file__.rsplit("/", 3)[0])
+from badf.bench._common import deform, find_mesh, start_warp, timestamp  # noqa: E402
+from badf.server.adf import DistanceField, _bvh  # noqa: E402
+from badf.server.adf._tolerances import SOUP_AREA, WINDING_BUDGET  # noqa: E402
+
+SETTINGS = {"gated": (WINDING_BUDGET, SOUP_AREA), "always": (WINDING_BUDGET, 0.0), "never": (2**30, float("inf"))}
+
+
+def thrown(vertices: np.ndarray, noise: float) -> np.ndarray:
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    throw = np.random.default_rng(0).uniform(-1.0, 1.0, size=vertices.shape) * noise * float(np.max(hi - lo))
+    return np.clip(vertices + throw, lo, hi).astype(np.float32)
+
+
+def sphere_areas(field: DistanceField) -> float:
+    """The frame's area over the area of the sphere the BVH's root bounds, as the walks read it."""
+    moments = field._bvh.node_moments.numpy()
+    return float(moments[1][3] / (4.0 * np.pi * moments[0][3] ** 2))
+
+
+def run_case(case: dict, setting: str, depth: int, device: str) -> dict:
+    _bvh.WINDING_BUDGET, _bvh.SOUP_AREA = SETTINGS[setting]
+    vertices, faces = case["vertices"], case["faces"]
+    field = DistanceField(vertices, faces, depth=depth, sign=case["sign"], device=device, rigid="off")
+    calm = [deform(vertices, 0.02 * k) for k in range(1, 4)] if case["frame"] is not None else [vertices] * 3
+    for frame in calm:
+        field.update(frame)
+    target = case["frame"] if case["frame"] is not None else vertices
+    wp.synchronize_device(device)
+    start = time.perf_counter()
+    field.update(target)
+    wp.synchronize_device(device)
+    wall = time.perf_counter() - start
+    stats = field.stats()
+    positions, values, _ = field.corner_samples()
+    row = {"case": case["name"], "setting": setting, "faces": len(faces), "wall_s": round(wall, 4),
+           "winding_walks_cut": stats["winding_walks_cut"], "corners": stats["counts"]["unique_corners"],
+           "sphere_areas": round(sphere_areas(field), 3), "values": values}
+    if case["name"].startswith("cylinder"):
+        inside = (np.hypot(positions[:, 0], positions[:, 1]) < 0.5) & (np.abs(positions[:, 2]) < 1.0)
+        off = np.abs(values) > 1e-3 * float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+        row["sides_unlike_the_solid"] = int(np.sum(((values < 0) != inside) & off))
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("meshes", nargs="*", default=["stanford-bunny"])
+    parser.add_argument("--device", default=None)
+    parser.add_argument("--depth", type=int, default=7)
+    parser.add_argument("--sections", type=int, default=2000)
+    parser.add_argument("--noise", type=float, nargs="+", default=[0.02, 0.05, 0.2])
+    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args()
+    device = start_warp(args.device)
+    cylinder = trimesh.creation.cylinder(radius=0.5, height=2.0, sections=args.sections)
+    cases = [{"name": f"cylinder {args.sections}", "sign": "winding", "frame": None,
+              "vertices": np.asarray(cylinder.vertices, np.float32), "faces": np.asarray(cylinder.faces, np.int32)}]
+    for mesh in args.meshes:
+        data = np.load(find_mesh(mesh))
+        vertices = data["vertices"][0] if data["vertices"].ndim == 3 else data["vertices"]
+        vertices, faces = np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(data["faces"], np.int32)
+        for noise in args.noise:
+            cases.append({"name": f"{mesh.rsplit('/', 1)[-1].removesuffix('.npz')} thrown {noise:g}", "sign": "auto",
+                          "frame": thrown(vertices, noise), "vertices": vertices, "faces": faces})
+    report = {"device": wp.get_device(device).name, "date": timestamp(), "depth": args.depth,
+              "soup_area": SOUP_AREA, "budget": WINDING_BUDGET, "rows": []}
+    for case in cases:
+        reference = None
+        for round_index in range(args.rounds):
+            for setting in ("never", "gated", "always"):
+                row = run_case(case, setting, args.depth, device)
+                values = row.pop("values")
+                reference = values if reference is None else reference
+                row["sides_unlike_never"] = int(np.sum((values < 0) != (reference < 0)))
+                row["round"] = round_index
+                report["rows"].append(row)
+                print(json.dumps(row), flush=True)
+    print(f"\n{report['device']}, {report['date']}, depth {args.depth}, budget {WINDING_BUDGET}, "
+          f"soup at {SOUP_AREA:g} sphere areas:")
+    print(f"{'case':>24} {'setting':>7} {'areas':>7} {'wall s':>8} {'walks cut':>10} {'corners':>9} "
+          f"{'sides unlike never':>19} {'unlike the solid':>17}")
+    for r in report["rows"]:
+        print(f"{r['case'][-24:]:>24} {r['setting']:>7} {r['sphere_areas']:>7.2f} {r['wall_s']:>8.3f} "
+              f"{r['winding_walks_cut']:>10} {r['corners']:>9} {r['sides_unlike_never']:>19} "
+              f"{r.get('sides_unlike_the_solid', ''):>17}")
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(report, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
