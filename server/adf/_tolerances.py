@@ -80,9 +80,10 @@ WINDING_BUDGET = 2048
 # root bounds (a closed convex surface inside a sphere has at most the sphere's area); or a tree that misfits the frame
 # (RERUN_SPREAD below), whose frame runs again. A sound surface's walks may open more nodes than the budget, where its
 # triangles are long and thin (a closed cylinder of 2,000 sections, 8,000 faces: every node is near every point beside
-# it; cut walks signed 199 of 2,989 points wrongly, third outside check), and run whole. Measured at the root (CPU,
-# 2026-12-06): the shared meshes 0.18 to 0.32 sphere areas, that cylinder 0.42, a sheet folded into 40 layers 4.1; the
-# shared meshes' vertices thrown a fifth of their extent 10 (spot) to 138 (the armadillo), a twentieth 1.2 to 14.5.
+# it; cut, its walks signed 34,495 of its 140,195 corners at depth 7 wrongly, H100), and run whole, for 21 ms more a
+# frame there. Measured at the root (CPU, 2026-12-06): the shared meshes 0.18 to 0.32 sphere areas, that cylinder 0.42,
+# a sheet folded into 40 layers 4.1; the shared meshes' vertices thrown a fifth of their extent 10 (spot) to 138 (the
+# armadillo), a twentieth 1.2 to 14.5.
 SOUP_AREA = 8.0
 
 # A BVH linked on Morton codes is refitted while the domain holds the frames. Consecutive leaves then hold neighbouring
