@@ -42,6 +42,8 @@ def test_no_walk_of_a_sound_surface_is_cut(device, name):
     off_surface = np.abs(values[pick]) > tol.SIGN_MARGIN * oracle.bbox_diagonal(vertices)
     clear = off_surface & (np.abs(np.abs(w) - 0.5) > tol.WINDING_CONFIDENCE)
     np.testing.assert_array_equal(values[pick][clear] < 0, np.abs(w[clear]) > 0.5)
+    field.query(positions[pick[:200]], mode="exact")
+    assert field.stats()["last_query_walks_cut"] == 0
 
 
 def test_slivers_would_meet_the_budget_if_it_bound_them(device, monkeypatch):
@@ -64,7 +66,8 @@ def test_a_soup_frame_is_cut_short_with_its_distances_exact(device, monkeypatch)
         monkeypatch.setattr(_bvh, "WINDING_BUDGET", budget)
         fields[label] = DistanceField(vertices, faces, depth=4, sign="winding", device=device)
     cut, uncut = fields["cut"], fields["uncut"]
-    assert cut.stats()["winding_walks_cut"] > 0
+    frame_cuts = cut.stats()["winding_walks_cut"]
+    assert frame_cuts > 0
     assert uncut.stats()["winding_walks_cut"] == 0
 
     positions, values, _ = cut.corner_samples()
@@ -82,6 +85,11 @@ def test_a_soup_frame_is_cut_short_with_its_distances_exact(device, monkeypatch)
         assert np.isfinite(got).all()
         if mode == "exact":
             assert np.max(np.abs(np.abs(got) - truth)) <= tol.EXACT_DISTANCE * diagonal
+            # an exact query signs each point by a walk of its own, cut as the frame's are, and counted apart
+            assert cut.stats()["last_query_walks_cut"] > 0
+            assert cut.stats()["winding_walks_cut"] == frame_cuts
+            assert uncut.query(points, mode=mode).distance.shape == (500,)
+            assert uncut.stats()["last_query_walks_cut"] == 0
 
 
 

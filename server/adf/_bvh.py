@@ -101,13 +101,14 @@ class BvhView:
     far_field: float
     # internal nodes a winding-number walk opens at most (WINDING_BUDGET) in a soup (a surface of more than
     # `soup_area` times its root's sphere's area: SOUP_AREA) or on a tree that misfits the frame (`leaf_spread`),
-    # and the count of walks cut short by it
+    # and the counts of walks cut short by it: the frame's (slot 0) and the last query's (slot 1), this view's in
+    # `cut_slot`
     winding_budget: int
     soup_area: float
     winding_cuts: wp.array(dtype=wp.int32)
+    cut_slot: int
     # Bvh.measure_spread's sums: this frame's (gaps, sizes), then those of the frame the tree was linked on
     leaf_spread: wp.array(dtype=wp.int64)
-    winding_cuts: wp.array(dtype=wp.int32)
     # Fast-winding-number moments of each internal node i, four vec4 (a one-element array when the sign
     # does not need them). A single triangle's are worked out from it where needed (`leaf_moments`): its
     # first moment about its centroid is zero, so storing them would only repeat the triangle.
@@ -165,7 +166,8 @@ class Bvh:
             self.rim_faces.assign(rim)
         self.rim = b.array("bvh.rim", 3 * max(self.rim_count, 1), wp.vec3)
         self._cuts: dict[int, wp.array] = {}
-        self.winding_cuts = b.array("bvh.winding_cuts", 1, wp.int32)  # zeroed by each frame, read with its report
+        # the walks cut, the frame's (zeroed by each frame, read with its report) and the last query's
+        self.winding_cuts = b.array("bvh.winding_cuts", 2, wp.int32)
         # measure_spread's sums, this frame's (read with its report) and the linking frame's (zero: never measured)
         self.leaf_spread = b.array("bvh.leaf_spread", 4, wp.int64)
 
@@ -335,7 +337,8 @@ class Bvh:
             self._cuts[bits] = cut
         return self._cuts[bits]
 
-    def view(self) -> BvhView:
+    def view(self, cut_slot: int = 0) -> BvhView:
+        """The tree as kernels take it; its winding walks count their cuts in `winding_cuts[cut_slot]`."""
         v = BvhView()
         v.internal_count = self.internal_count
         v.code_levels, v.index_bits = self.code_levels, self.index_bits
@@ -348,7 +351,7 @@ class Bvh:
         v.keys_in_leaf_order = 1 if self.shape is None else 0
         v.far_field = self.far_field
         v.winding_budget, v.soup_area, v.winding_cuts = self.winding_budget, self.soup_area, self.winding_cuts
-        v.leaf_spread = self.leaf_spread
+        v.leaf_spread, v.cut_slot = self.leaf_spread, cut_slot
         v.node_moments = self.node_moments
         v.wide_planes, v.wide_child, v.wide_first = self.wide.planes, self.wide.child, self.wide.first
         v.rim, v.rim_count = self.rim, self.rim_count
@@ -848,7 +851,7 @@ def _winding_number_function(careful: bool):
         In a soup (`is_soup`), or on a tree that misfits the frame (`tree_misfits`: the frame then runs again), a
         walk opens at most `bvh.winding_budget` internal nodes; the nodes still waiting then take their expansion
         where p lies beyond their radius and are left out where it lies within, and the walk counts itself in
-        `bvh.winding_cuts`. Elsewhere a walk runs whole, however many nodes it opens."""
+        `bvh.winding_cuts` (at `bvh.cut_slot`). Elsewhere a walk runs whole, however many nodes it opens."""
         total = float(0.0)
         cancelled = bool(False)
         if bvh.internal_count == 0:
@@ -893,7 +896,7 @@ def _winding_number_function(careful: bool):
                         nodes[count] = child
                         count += 1
         if count > 0:  # the budget is spent (a soup of large triangles): what waits is summed roughly, or left out
-            wp.atomic_add(bvh.winding_cuts, 0, 1)
+            wp.atomic_add(bvh.winding_cuts, bvh.cut_slot, 1)
             while count > 0:
                 count -= 1
                 centre_radius = load_vec4(bvh.node_moments, 4 * nodes[count])

@@ -633,17 +633,19 @@ class DistanceField:
         names = check_outputs(outputs)
         p = as_points(points)
         start_time = time.perf_counter()
-        result = self._answer(p, mode, names, self._pose)
+        self._bvh.winding_cuts[1:2].zero_()  # the walks this query cuts (stats()["last_query_walks_cut"])
+        result = self._answer(p, mode, names, self._pose, cut_slot=1)
         self._counters.queries += 1
         self._counters.query_points += len(p)
         self._counters.last_query_ms = (time.perf_counter() - start_time) * 1e3
         return result
 
-    def _answer(self, p: np.ndarray, mode: QueryMode, names: tuple[QueryOutput, ...], pose: Pose | None = None
-                ) -> QueryResult:
+    def _answer(self, p: np.ndarray, mode: QueryMode, names: tuple[QueryOutput, ...], pose: Pose | None = None,
+                cut_slot: int = 0) -> QueryResult:
         """The outputs `names` at checked points p: a query's work, which a slice shares (uncounted). With a rigid
         frame's pose, the points are turned into the field's frame on the device, and its closest points and
-        normals turned back out on the host (distances and faces are the same in both)."""
+        normals turned back out on the host (distances and faces are the same in both). Winding walks cut short
+        count in `winding_cuts[cut_slot]` (a query's in slot 1; a slice's in the frame's slot, after its report)."""
         self._bvh.hold_geometry(self._vertices, self._faces)  # given back by a trim: refitted to this frame again
         count = len(p)
         result = QueryResult(frame=self._frame)
@@ -661,7 +663,7 @@ class DistanceField:
         # the cube where the points are measured from: the field's, or where the pose has carried it
         placed, turn, shift = (domain, None, None) if pose is None else _placed(domain, pose)
         tree = self._octree.view(domain.origin, domain.local_side)
-        bvh, sign = self._bvh.view(), self._normals.view()
+        bvh, sign = self._bvh.view(cut_slot), self._normals.view()
         if mode == "adf" and bits & (OUT_CLOSEST | OUT_NORMAL):
             self._mark_medial_leaves(tree, bvh)
         band = domain.local_band(self._band)
@@ -853,6 +855,8 @@ class DistanceField:
             "scratch_given_back": c.scratch_given_back,
             "trims": c.trims,
             "winding_walks_cut": c.winding_walks_cut,
+            # the last query's winding walks cut short (its signs there are estimates): read from the device here
+            "last_query_walks_cut": int(self._bvh.winding_cuts.numpy()[1]),
             "bvh_relinks": c.bvh_relinks,
             "bvh_leaf_spread": round(self._tree_spread, 3),
             "queries": c.queries,
@@ -960,7 +964,7 @@ class DistanceField:
         """Queue the staged frame's copy to the device and its move to local coordinates: within the frame, so a
         replayed frame is one launch from the host."""
         wp.copy(self._vertices, self._staging)
-        self._bvh.winding_cuts.zero_()  # this frame's count, for its report
+        self._bvh.winding_cuts[0:1].zero_()  # this frame's count, for its report (the last query's is kept)
         self._to_local.upload()
         wp.launch(_move_to_local, dim=self._vertex_count, inputs=[self._vertices, self._to_local.array])
 
