@@ -1,11 +1,12 @@
 """Probe, not part of the product: what binding the winding walks' budget only to soups (SOUP_AREA) costs and buys.
 
     python3 bench/probes/probe_soup_gate.py [MESH.npz ...] [--device cuda:0] [--depth 7] [--sections 2000]
-        [--noise 0.02 0.05 0.2] [--rounds 2] [--out F.json]
+        [--noise 0.02 0.05 0.2] [--fractions 1.0] [--rounds 2] [--out F.json]
 
 Cases: a closed cylinder of `--sections` sections (long thin triangles, a sound surface whose walks open more nodes
 than the budget) signed by winding numbers, and each mesh's frame with every vertex thrown up to each `--noise` of
-the box's extent, kept in the box, after three calm frames (sign "auto"). Each case runs under three settings,
+the box's extent, kept in the box, after three calm frames (sign "auto"); with `--fractions` below 1, only that share
+of the vertices (picked at random) is thrown: a frame only part of which is violent. Each case runs under three settings,
 alternated over rounds in one process (the settings are fields of the BVH's view, read when an object is made):
 
     gated   the engine's: the budget binds where the frame's area passes SOUP_AREA sphere areas
@@ -34,9 +35,11 @@ from badf.server.adf._tolerances import SOUP_AREA, WINDING_BUDGET  # noqa: E402
 SETTINGS = {"gated": (WINDING_BUDGET, SOUP_AREA), "always": (WINDING_BUDGET, 0.0), "never": (2**30, float("inf"))}
 
 
-def thrown(vertices: np.ndarray, noise: float) -> np.ndarray:
+def thrown(vertices: np.ndarray, noise: float, fraction: float = 1.0) -> np.ndarray:
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
-    throw = np.random.default_rng(0).uniform(-1.0, 1.0, size=vertices.shape) * noise * float(np.max(hi - lo))
+    rng = np.random.default_rng(0)
+    throw = rng.uniform(-1.0, 1.0, size=vertices.shape) * noise * float(np.max(hi - lo))
+    throw[rng.random(len(vertices)) >= fraction] = 0.0
     return np.clip(vertices + throw, lo, hi).astype(np.float32)
 
 
@@ -78,6 +81,7 @@ def main() -> None:
     parser.add_argument("--depth", type=int, default=7)
     parser.add_argument("--sections", type=int, default=2000)
     parser.add_argument("--noise", type=float, nargs="+", default=[0.02, 0.05, 0.2])
+    parser.add_argument("--fractions", type=float, nargs="+", default=[1.0])
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
@@ -89,9 +93,12 @@ def main() -> None:
         data = np.load(find_mesh(mesh))
         vertices = data["vertices"][0] if data["vertices"].ndim == 3 else data["vertices"]
         vertices, faces = np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(data["faces"], np.int32)
+        name = mesh.rsplit('/', 1)[-1].removesuffix('.npz')
         for noise in args.noise:
-            cases.append({"name": f"{mesh.rsplit('/', 1)[-1].removesuffix('.npz')} thrown {noise:g}", "sign": "auto",
-                          "frame": thrown(vertices, noise), "vertices": vertices, "faces": faces})
+            for fraction in args.fractions:
+                share = "" if fraction >= 1.0 else f" {fraction:.0%} of it"
+                cases.append({"name": f"{name} thrown {noise:g}{share}", "sign": "auto",
+                              "frame": thrown(vertices, noise, fraction), "vertices": vertices, "faces": faces})
     report = {"device": wp.get_device(device).name, "date": timestamp(), "depth": args.depth,
               "soup_area": SOUP_AREA, "budget": WINDING_BUDGET, "rows": []}
     for case in cases:
@@ -107,10 +114,10 @@ def main() -> None:
                 print(json.dumps(row), flush=True)
     print(f"\n{report['device']}, {report['date']}, depth {args.depth}, budget {WINDING_BUDGET}, "
           f"soup at {SOUP_AREA:g} sphere areas:")
-    print(f"{'case':>24} {'setting':>7} {'areas':>7} {'wall s':>8} {'walks cut':>10} {'corners':>9} "
+    print(f"{'case':>32} {'setting':>7} {'areas':>7} {'wall s':>8} {'walks cut':>10} {'corners':>9} "
           f"{'sides unlike never':>19} {'unlike the solid':>17}")
     for r in report["rows"]:
-        print(f"{r['case'][-24:]:>24} {r['setting']:>7} {r['sphere_areas']:>7.2f} {r['wall_s']:>8.3f} "
+        print(f"{r['case'][-32:]:>32} {r['setting']:>7} {r['sphere_areas']:>7.2f} {r['wall_s']:>8.3f} "
               f"{r['winding_walks_cut']:>10} {r['corners']:>9} {r['sides_unlike_never']:>19} "
               f"{r.get('sides_unlike_the_solid', ''):>17}")
     if args.out:
