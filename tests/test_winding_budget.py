@@ -12,6 +12,7 @@ import pytest
 import meshes
 import oracle
 import tolerances as tol
+from badf.bench._cases import folded_sheet
 from badf.server.adf import DistanceField
 from badf.server.adf import _bvh
 
@@ -29,12 +30,14 @@ def slivers():
     return meshes.wire(radius=0.5, height=2.0, sections=2000)
 
 
-@pytest.mark.parametrize("name", ["spot", "homer", "torus", "sheet", "slivers"])
+@pytest.mark.parametrize("name", ["spot", "homer", "torus", "sheet", "slivers", "folded"])
 def test_no_walk_of_a_sound_surface_is_cut(device, name):
     """No walk of a sound surface's frame is cut, and its corners' signs are the oracle's: the shared meshes' corner
-    walks open fewer than 512 nodes (at depths 5, 7 and 9), the slivers' more than the budget (2,048), and run whole."""
-    vertices, faces = slivers() if name == "slivers" else meshes.load(name)
-    field = DistanceField(vertices, faces, depth=5 if name == "slivers" else 6, sign="winding", device=device)
+    walks open fewer than 512 nodes (at depths 5, 7 and 9), the slivers' more than the budget (2,048), and run whole.
+    The folded sheet counts as a soup by its area, but its nodes of long strips are thin (FAT_AREA): none counts."""
+    generated = {"slivers": slivers, "folded": folded_sheet}
+    vertices, faces = generated[name]() if name in generated else meshes.load(name)
+    field = DistanceField(vertices, faces, depth=5 if name in generated else 6, sign="winding", device=device)
     assert field.stats()["winding_walks_cut"] == 0
     positions, values, _ = field.corner_samples()
     pick = np.random.default_rng(0).choice(len(positions), min(len(positions), 3000), replace=False)
@@ -46,11 +49,14 @@ def test_no_walk_of_a_sound_surface_is_cut(device, name):
     assert field.stats()["last_query_walks_cut"] == 0
 
 
-def test_slivers_would_meet_the_budget_if_it_bound_them(device, monkeypatch):
-    """The slivers' walks do open more than the budget: counted as a soup (SOUP_AREA 0, which every surface passes),
-    their frame cuts them. Their surface is 0.42 of its root's sphere's area, a soup's many times it."""
+@pytest.mark.parametrize("name", ["slivers", "folded"])
+def test_thin_walks_would_meet_the_budget_if_every_node_counted(device, monkeypatch, name):
+    """The slivers' and the folded sheet's walks do open more than the budget: counted as a soup (SOUP_AREA 0, which
+    every surface passes) with every node counting (FAT_AREA 0), their frames cut them. The slivers' surface is 0.42
+    of its root's sphere's area, the folded sheet's 11.8."""
     monkeypatch.setattr(_bvh, "SOUP_AREA", 0.0)
-    vertices, faces = slivers()
+    monkeypatch.setattr(_bvh, "FAT_AREA", 0.0)
+    vertices, faces = slivers() if name == "slivers" else folded_sheet()
     field = DistanceField(vertices, faces, depth=4, sign="winding", device=device)
     assert field.stats()["winding_walks_cut"] > 0
 

@@ -4,13 +4,16 @@
         [--noise 0.02 0.05 0.2] [--fractions 1.0] [--rounds 2] [--out F.json]
 
 Cases: a closed cylinder of `--sections` sections (long thin triangles, a sound surface whose walks open more nodes
-than the budget) signed by winding numbers, and each mesh's frame with every vertex thrown up to each `--noise` of
+than the budget) and an open sheet of strips folded into `--layers` layers (sound, but a soup by its area), both signed
+by winding numbers, and each mesh's frame with every vertex thrown up to each `--noise` of
 the box's extent, kept in the box, after three calm frames (sign "auto"); with `--fractions` below 1, only that share
-of the vertices (picked at random) is thrown: a frame only part of which is violent. Each case runs under three settings,
+of the vertices (picked at random) is thrown: a frame only part of which is violent. Each case runs under four settings,
 alternated over rounds in one process (the settings are fields of the BVH's view, read when an object is made):
 
-    gated   the engine's: the budget binds where the frame's area passes SOUP_AREA sphere areas
-    always  the budget binds every walk (the engine before the gate)
+    gated   the engine's: the budget binds where the frame's area passes SOUP_AREA sphere areas, and counts only the
+            nodes of more than FAT_AREA times their disc's area
+    every   the budget binds there, and every node counts (the engine before FAT_AREA)
+    always  the budget binds every walk, and every node counts (the engine before SOUP_AREA)
     never   no budget (the reference for the sides)
 
 For each: the frame's wall time (synchronised), its walks cut, the frame's area in sphere areas (at the BVH's root),
@@ -28,11 +31,13 @@ import trimesh
 import warp as wp
 
 sys.path.insert(0, __file__.rsplit("/", 3)[0])
+from badf.bench._cases import folded_sheet  # noqa: E402
 from badf.bench._common import deform, find_mesh, start_warp, timestamp  # noqa: E402
 from badf.server.adf import DistanceField, _bvh  # noqa: E402
-from badf.server.adf._tolerances import SOUP_AREA, WINDING_BUDGET  # noqa: E402
+from badf.server.adf._tolerances import FAT_AREA, SOUP_AREA, WINDING_BUDGET  # noqa: E402
 
-SETTINGS = {"gated": (WINDING_BUDGET, SOUP_AREA), "always": (WINDING_BUDGET, 0.0), "never": (2**30, float("inf"))}
+SETTINGS = {"gated": (WINDING_BUDGET, SOUP_AREA, FAT_AREA), "every": (WINDING_BUDGET, SOUP_AREA, 0.0),
+            "always": (WINDING_BUDGET, 0.0, 0.0), "never": (2**30, float("inf"), 0.0)}
 
 
 def thrown(vertices: np.ndarray, noise: float, fraction: float = 1.0) -> np.ndarray:
@@ -50,7 +55,7 @@ def sphere_areas(field: DistanceField) -> float:
 
 
 def run_case(case: dict, setting: str, depth: int, device: str) -> dict:
-    _bvh.WINDING_BUDGET, _bvh.SOUP_AREA = SETTINGS[setting]
+    _bvh.WINDING_BUDGET, _bvh.SOUP_AREA, _bvh.FAT_AREA = SETTINGS[setting]
     vertices, faces = case["vertices"], case["faces"]
     field = DistanceField(vertices, faces, depth=depth, sign=case["sign"], device=device, rigid="off")
     calm = [deform(vertices, 0.02 * k) for k in range(1, 4)] if case["frame"] is not None else [vertices] * 3
@@ -80,6 +85,7 @@ def main() -> None:
     parser.add_argument("--device", default=None)
     parser.add_argument("--depth", type=int, default=7)
     parser.add_argument("--sections", type=int, default=2000)
+    parser.add_argument("--layers", type=int, default=110)
     parser.add_argument("--noise", type=float, nargs="+", default=[0.02, 0.05, 0.2])
     parser.add_argument("--fractions", type=float, nargs="+", default=[1.0])
     parser.add_argument("--rounds", type=int, default=2)
@@ -89,6 +95,9 @@ def main() -> None:
     cylinder = trimesh.creation.cylinder(radius=0.5, height=2.0, sections=args.sections)
     cases = [{"name": f"cylinder {args.sections}", "sign": "winding", "frame": None,
               "vertices": np.asarray(cylinder.vertices, np.float32), "faces": np.asarray(cylinder.faces, np.int32)}]
+    sheet_vertices, sheet_faces = folded_sheet(args.layers)
+    cases.append({"name": f"folded sheet {args.layers}", "sign": "winding", "frame": None, "vertices": sheet_vertices,
+                  "faces": sheet_faces})
     for mesh in args.meshes:
         data = np.load(find_mesh(mesh))
         vertices = data["vertices"][0] if data["vertices"].ndim == 3 else data["vertices"]
@@ -104,7 +113,7 @@ def main() -> None:
     for case in cases:
         reference = None
         for round_index in range(args.rounds):
-            for setting in ("never", "gated", "always"):
+            for setting in ("never", "gated", "every", "always"):
                 row = run_case(case, setting, args.depth, device)
                 values = row.pop("values")
                 reference = values if reference is None else reference
@@ -113,7 +122,7 @@ def main() -> None:
                 report["rows"].append(row)
                 print(json.dumps(row), flush=True)
     print(f"\n{report['device']}, {report['date']}, depth {args.depth}, budget {WINDING_BUDGET}, "
-          f"soup at {SOUP_AREA:g} sphere areas:")
+          f"soup at {SOUP_AREA:g} sphere areas, fat nodes at {FAT_AREA:g} disc areas:")
     print(f"{'case':>32} {'setting':>7} {'areas':>7} {'wall s':>8} {'walks cut':>10} {'corners':>9} "
           f"{'sides unlike never':>19} {'unlike the solid':>17}")
     for r in report["rows"]:

@@ -48,8 +48,9 @@ from badf.server.adf._geometry import (
     thread_fence,
     triangle_distance_sq,
 )
-from badf.server.adf._tolerances import (BOX_SLACK, RELINK_SPREAD, RELINK_SPREAD_FLOOR, RERUN_SPREAD, RIM_TRUST,
-                                         SOUP_AREA, WINDING_BUDGET, WINDING_FAR_FIELD, WINDING_FAR_FIELD_SAH)
+from badf.server.adf._tolerances import (BOX_SLACK, FAT_AREA, RELINK_SPREAD, RELINK_SPREAD_FLOOR, RERUN_SPREAD,
+                                         RIM_TRUST, SOUP_AREA, WINDING_BUDGET, WINDING_FAR_FIELD,
+                                         WINDING_FAR_FIELD_SAH)
 
 _BOX_SLACK = wp.constant(BOX_SLACK)
 _INV_FOUR_PI = wp.constant(1.0 / (4.0 * math.pi))
@@ -101,10 +102,11 @@ class BvhView:
     far_field: float
     # internal nodes a winding-number walk opens at most (WINDING_BUDGET) in a soup (a surface of more than
     # `soup_area` times its root's sphere's area: SOUP_AREA) or on a tree that misfits the frame (`leaf_spread`),
-    # and the counts of walks cut short by it: the frame's (slot 0) and the last query's (slot 1), this view's in
-    # `cut_slot`
+    # counting only nodes of more than `fat_area` times their disc's area (FAT_AREA), and the counts of walks cut
+    # short by it: the frame's (slot 0) and the last query's (slot 1), this view's in `cut_slot`
     winding_budget: int
     soup_area: float
+    fat_area: float
     winding_cuts: wp.array(dtype=wp.int32)
     cut_slot: int
     # Bvh.measure_spread's sums: this frame's (gaps, sizes), then those of the frame the tree was linked on
@@ -140,7 +142,7 @@ class Bvh:
         self.face_count = face_count
         self.shape = shape if face_count > 1 else None
         self.far_field = WINDING_FAR_FIELD if self.shape is None else WINDING_FAR_FIELD_SAH
-        self.winding_budget, self.soup_area = WINDING_BUDGET, SOUP_AREA
+        self.winding_budget, self.soup_area, self.fat_area = WINDING_BUDGET, SOUP_AREA, FAT_AREA
         self._shape_linked = False
         self.internal_count = face_count - 1
         self.code_levels, self.index_bits = code_layout(face_count)
@@ -351,7 +353,7 @@ class Bvh:
         v.keys_in_leaf_order = 1 if self.shape is None else 0
         v.far_field = self.far_field
         v.winding_budget, v.soup_area, v.winding_cuts = self.winding_budget, self.soup_area, self.winding_cuts
-        v.leaf_spread, v.cut_slot = self.leaf_spread, cut_slot
+        v.leaf_spread, v.cut_slot, v.fat_area = self.leaf_spread, cut_slot, self.fat_area
         v.node_moments = self.node_moments
         v.wide_planes, v.wide_child, v.wide_first = self.wide.planes, self.wide.child, self.wide.first
         v.rim, v.rim_count = self.rim, self.rim_count
@@ -849,9 +851,11 @@ def _winding_number_function(careful: bool):
     def winding_number(bvh: BvhView, p: wp.vec3):
         """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018).
         In a soup (`is_soup`), or on a tree that misfits the frame (`tree_misfits`: the frame then runs again), a
-        walk opens at most `bvh.winding_budget` internal nodes; the nodes still waiting then take their expansion
-        where p lies beyond their radius and are left out where it lies within, and the walk counts itself in
-        `bvh.winding_cuts` (at `bvh.cut_slot`). Elsewhere a walk runs whole, however many nodes it opens."""
+        walk opens at most `bvh.winding_budget` fat internal nodes (of more than `bvh.fat_area` times their disc's
+        area: a soup's piled triangles; a thin node, of long thin triangles however many layers deep, is opened
+        uncounted, but on a misfit tree every node counts); the nodes still waiting then take their expansion where p lies beyond their radius and are left
+        out where it lies within, and the walk counts itself in `bvh.winding_cuts` (at `bvh.cut_slot`). Elsewhere
+        a walk runs whole, however many nodes it opens. A thin node waits on the stack as -1 - its id."""
         total = float(0.0)
         cancelled = bool(False)
         if bvh.internal_count == 0:
@@ -865,11 +869,19 @@ def _winding_number_function(careful: bool):
         nodes[0] = 0
         count = int(1)
         budget = bvh.winding_budget
-        bounded = is_soup(bvh) or tree_misfits(bvh)
+        # on a misfit tree every node counts: there a calm frame's nodes gather small triangles from far apart, thin
+        # by their area, and the walks must meet the budget for the frame to run again on a tree of its own
+        misfit = tree_misfits(bvh)
+        bounded = misfit or is_soup(bvh)
+        thin_free = bounded and not misfit
         while count > 0 and (budget > 0 or not bounded):
             count -= 1
-            budget -= 1
-            slot = 2 * nodes[count]
+            node = nodes[count]
+            if node < 0:
+                node = -1 - node
+            else:
+                budget -= 1
+            slot = 2 * node
             for side in range(2):
                 child = bvh.slot_child[slot + side]
                 if child >= bvh.internal_count:  # a single triangle: its dipole far away, else its solid angle
@@ -893,17 +905,24 @@ def _winding_number_function(careful: bool):
                     if dist > bvh.far_field * centre_radius[3]:
                         total += _far_field(bvh, child, offset / dist, dist)
                     else:
-                        nodes[count] = child
+                        thin = False
+                        if thin_free:
+                            area = load_vec4(bvh.node_moments, 4 * child + 1)[3]
+                            thin = area <= bvh.fat_area * wp.pi * centre_radius[3] * centre_radius[3]
+                        nodes[count] = wp.where(thin, -1 - child, child)
                         count += 1
         if count > 0:  # the budget is spent (a soup of large triangles): what waits is summed roughly, or left out
             wp.atomic_add(bvh.winding_cuts, bvh.cut_slot, 1)
             while count > 0:
                 count -= 1
-                centre_radius = load_vec4(bvh.node_moments, 4 * nodes[count])
+                node = nodes[count]
+                if node < 0:
+                    node = -1 - node
+                centre_radius = load_vec4(bvh.node_moments, 4 * node)
                 offset = _xyz(centre_radius) - p
                 dist = wp.length(offset)
                 if dist > centre_radius[3]:
-                    total += _far_field(bvh, nodes[count], offset / dist, dist)
+                    total += _far_field(bvh, node, offset / dist, dist)
         return total * _INV_FOUR_PI, cancelled
 
     winding_number.__name__ = winding_number.__qualname__ = "winding_number_careful" if careful else "winding_number"
