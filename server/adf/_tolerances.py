@@ -88,8 +88,8 @@ SOUP_AREA = 8.0
 # Where it binds, the budget counts only the fat nodes a walk opens: of more than this many times the area of the disc
 # of their radius. A soup's nodes pile large triangles; a node of long thin triangles has little area for its radius,
 # whatever the frame's area: an open sheet of strips folded into 110 layers (11.8 sphere areas, so a soup by the bar)
-# had 5,168 walks cut and 691 of its 4,913 corners on the other side when every node counted, none cut with this
-# (CPU, depth 4, 2026-12-06); the bunny's whole throw took 7% longer on the CPU (1.74 s against 1.63 s at depth 4).
+# had 5,168 walks cut and 691 of its 4,913 corners on the other side when every node counted, none cut with this; the
+# bunny's whole throw took 1.63 to 1.67 s either way (CPU, depth 4, two rounds, 2026-12-06; not measured on a GPU).
 FAT_AREA = 0.1
 
 # A BVH linked on Morton codes is refitted while the domain holds the frames. Consecutive leaves then hold neighbouring
