@@ -1,5 +1,6 @@
 """Probe, not part of the product: calm frames after a violent frame that moves the domain, with the tree linked again
-once it misfits (the engine) and without (RELINK_SPREAD set to infinity).
+once it misfits (the engine) and without (the host never acting on the device's verdict, `tree_fit`: the walks on the
+misfit tree are still bound there, as in the engine).
 
     python3 bench/probes/probe_relink.py MESH.npz [MESH.npz ...] [--device cuda:0] [--depth 7] [--frames 10]
         [--out F.json]
@@ -22,7 +23,7 @@ import warp as wp
 sys.path.insert(0, __file__.rsplit("/", 3)[0])
 from badf.bench._common import deform, find_mesh, start_warp  # noqa: E402
 from badf.server.adf import DistanceField  # noqa: E402
-from badf.server.adf import _field  # noqa: E402
+from badf.server.adf import _bvh, _field  # noqa: E402
 
 
 def timed(device, call):
@@ -34,7 +35,10 @@ def timed(device, call):
 
 
 def run(vertices, faces, *, depth, device, frames, relink):
-    _field.RELINK_SPREAD = 2.0 if relink else float("inf")
+    # the levels of the report's verdict the host links at (TREE_DUE) and runs a frame again at (TREE_MISFITS); a
+    # level above every verdict turns both off
+    never = int(_bvh.TREE_MISFITS) + 1
+    _field.TREE_DUE, _field.TREE_MISFITS = (_bvh.TREE_DUE, _bvh.TREE_MISFITS) if relink else (never, never)
     field = DistanceField(vertices, faces, depth=depth, device=device, bvh="morton", rigid="off")
     extent = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
     points = np.random.default_rng(3).uniform(vertices.min(axis=0), vertices.max(axis=0), (65536, 3)).astype(np.float32)

@@ -585,14 +585,28 @@ def spread_units(gaps: wp.int64, sizes: wp.int64) -> int:
     return int(spread * float(SPREAD_UNIT))
 
 
+TREE_FITS = wp.constant(0)
+TREE_DUE = wp.constant(1)  # to be linked again by the next frame
+TREE_MISFITS = wp.constant(2)  # due, and so far off that a frame whose walk was cut runs again at once
+
+
+@wp.func
+def tree_fit(sums: wp.array(dtype=wp.int64)) -> int:
+    """How the tree fits this frame, from Bvh.measure_spread's sums: TREE_DUE past RELINK_SPREAD times the linking
+    frame's spread (or the floor), TREE_MISFITS where it also passes RERUN_SPREAD, else TREE_FITS. The frame's report
+    carries it to the host (`DistanceField._watch_tree`, `_rebuild`), and the winding walks read it: one rule for both."""
+    spread = spread_units(sums[0], sums[1])
+    linked = wp.max(spread_units(sums[2], sums[3]), _RELINK_FLOOR_UNITS)
+    if float(spread) <= _RELINK_SPREAD * float(linked):
+        return TREE_FITS
+    return wp.where(spread > _RERUN_UNITS, TREE_MISFITS, TREE_DUE)
+
+
 @wp.func
 def tree_misfits(bvh: BvhView) -> bool:
     """Whether the tree misfits this frame so badly that the frame runs again on a tree linked on itself once a walk
-    is cut (`DistanceField._rebuild`, which decides it from the same sums in the frame's report): the leaf spread
-    past RELINK_SPREAD times the linking frame's (or the floor) and past RERUN_SPREAD."""
-    spread = spread_units(bvh.leaf_spread[0], bvh.leaf_spread[1])
-    linked = wp.max(spread_units(bvh.leaf_spread[2], bvh.leaf_spread[3]), _RELINK_FLOOR_UNITS)
-    return spread > _RERUN_UNITS and float(spread) > _RELINK_SPREAD * float(linked)
+    is cut (`tree_fit`)."""
+    return tree_fit(bvh.leaf_spread) == TREE_MISFITS
 
 
 @wp.func
@@ -853,9 +867,10 @@ def _winding_number_function(careful: bool):
         In a soup (`is_soup`), or on a tree that misfits the frame (`tree_misfits`: the frame then runs again), a
         walk opens at most `bvh.winding_budget` fat internal nodes (of more than `bvh.fat_area` times their disc's
         area: a soup's piled triangles; a thin node, of long thin triangles however many layers deep, is opened
-        uncounted, but on a misfit tree every node counts); the nodes still waiting then take their expansion where p lies beyond their radius and are left
-        out where it lies within, and the walk counts itself in `bvh.winding_cuts` (at `bvh.cut_slot`). Elsewhere
-        a walk runs whole, however many nodes it opens. A thin node waits on the stack as -1 - its id."""
+        uncounted, but on a misfit tree every node counts); the nodes still waiting then take their expansion where
+        p lies beyond their radius and are left out where it lies within, and the walk counts itself in
+        `bvh.winding_cuts` (at `bvh.cut_slot`). Elsewhere a walk runs whole, however many nodes it opens. A thin
+        node waits on the stack as -1 - its id."""
         total = float(0.0)
         cancelled = bool(False)
         if bvh.internal_count == 0:

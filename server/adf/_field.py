@@ -16,7 +16,7 @@ import numpy as np
 import warp as wp
 
 from badf.server.adf._buffers import DeviceBuffers, HostStaged, SideStream
-from badf.server.adf._bvh import SPREAD_UNIT, Bvh, spread_units
+from badf.server.adf._bvh import SPREAD_UNIT, TREE_DUE, TREE_MISFITS, Bvh, spread_units, tree_fit
 from badf.server.adf._bvh_shape import Shape, resolve_shape, sah_shape
 from badf.server.adf._clock import StageClock
 from badf.server.adf._distance import (
@@ -76,9 +76,6 @@ from badf.server.adf._tolerances import (
     MAX_KERNEL_BAND,
     MIN_BAND,
     QUERY_CHUNK,
-    RELINK_SPREAD,
-    RELINK_SPREAD_FLOOR,
-    RERUN_SPREAD,
     REDOMAIN_KEEP_SIDE,
     REDOMAIN_MIN_FILL,
     REDOMAIN_REFIT_ROOM,
@@ -416,7 +413,7 @@ class DistanceField:
         self._counters = _Counters()
         # the BVH's leaf spread (Bvh.measure_spread) in the last frame and in the last that linked the tree, and
         # whether the next frame links it again because the tree has come to misfit the frames it is refitted to
-        self._tree_spread = self._linked_spread = 0.0
+        self._tree_spread, self._tree_fit = 0.0, 0
         self._relink_due = False
 
         # the first frame's cell set is sized from the surface area it may refine: a region's share of it (a
@@ -577,7 +574,7 @@ class DistanceField:
         try:
             local, extent = v if recentre else self._domain.to_local(v), float(np.max(hi - lo)) * self._domain.scale
             self._apply(local, extent, domain_moved=moved or relink, recentre=recentre)
-            if self._relink_due and self._counters.winding_walks_cut > 0 and self._tree_spread > RERUN_SPREAD:
+            if self._tree_fit == TREE_MISFITS and self._counters.winding_walks_cut > 0:
                 # the tree misfits this frame so badly that its winding walks met their budget (a calm frame on a tree
                 # linked on a violent one): its sides may be estimates, so it runs again on a tree linked on itself.
                 # A soup's own walks meet the budget on any tree, and its leaves lie no farther apart than its large
@@ -918,20 +915,17 @@ class DistanceField:
                 self._planned = True
             self._corners.keep_frame(self._report_on_device, self._fits_at, queued=self._keep_queued)
         self._watch_plan()
-        self._watch_tree(linked=domain_moved)
+        self._watch_tree()
         self._counters.last_update_wall_ms = (time.perf_counter() - wall) * 1e3
 
-    def _watch_tree(self, *, linked: bool) -> None:
+    def _watch_tree(self) -> None:
         """After a frame: whether the next one links the BVH again. A tree linked on Morton codes is refitted to later
         frames while the domain holds them; once its leaves lie RELINK_SPREAD times as far apart for their size as
         in the frame it was linked on (a violent frame's soup, then the calm mesh: every walk then runs long), the
-        next frame links it on its own codes."""
-        if linked:
-            self._linked_spread, self._relink_due = self._tree_spread, False
-        else:
-            # a tree linked on a frame of no spread (every triangle shrunk to a point) is measured against a floor
-            reference = max(self._linked_spread, RELINK_SPREAD_FLOOR)
-            self._relink_due = self._bvh.shape is None and self._tree_spread > RELINK_SPREAD * reference
+        next frame links it on its own codes. The device decides it (`tree_fit`, in the frame's report), from the
+        sums it keeps of the linking frame; a frame that linked the tree fits it, and a tree that is never measured
+        (the SAH's shape, kept) always fits."""
+        self._relink_due = self._tree_fit >= TREE_DUE
 
     def _watch_plan(self) -> None:
         """After a frame: give back a plan that has long held far more than the frames need. Once each of
@@ -1078,7 +1072,8 @@ class DistanceField:
         """Gather the frame's counts on the device, with whether each fits its capacity, and queue the keeping of
         the frame (which takes effect only if they all do) and one copy of the counts to the host. The layout
         (`_take_report`): the sizes, the sign's frame method, the levels' first nodes, whether parts overlap, whether
-        seams tore, the surface's own cells, whether it all fitted, the winding walks cut short, the leaf spread."""
+        seams tore, the surface's own cells, whether it all fitted, the winding walks cut short, the leaf spread, how the
+        tree fits the frame (`tree_fit`)."""
         sizes = self._octree.report()
         assert len(sizes) == _REPORT_SIZES
         (a0, i0, c0), (a1, i1, c1), (a2, i2, c2), (a3, i3, c3) = sizes
@@ -1089,7 +1084,7 @@ class DistanceField:
                           self._bvh.winding_cuts, self._bvh.leaf_spread],
                   outputs=[self._report_on_device], device=self._device)
         self._keep_queued = self._corners.queue_keep(self._report_on_device, self._fits_at)
-        wp.copy(self._report, self._report_on_device, count=self._fits_at + 3)
+        wp.copy(self._report, self._report_on_device, count=self._fits_at + 4)
 
     @property
     def _fits_at(self) -> int:
@@ -1109,6 +1104,7 @@ class DistanceField:
         self._normals.set_frame_method(int(report[k]), int(report[k + 2 + self._depth]), int(report[k + 3 + self._depth]))
         self._counters.winding_walks_cut = int(report[self._fits_at + 1])
         self._tree_spread = int(report[self._fits_at + 2]) / SPREAD_UNIT
+        self._tree_fit = int(report[self._fits_at + 3])
         return True
 
     # -- for tests and tools --------------------------------------------------------------------------
@@ -1142,7 +1138,8 @@ class DistanceField:
 
 
 # The frame's report: four sizes, the sign's frame method, up to MAX_DEPTH + 1 levels' first nodes, three flags, the
-# winding walks cut short, the BVH's leaf spread (Bvh.measure_spread: gaps over sizes) in 1 / SPREAD_UNIT
+# winding walks cut short, the BVH's leaf spread (Bvh.measure_spread: gaps over sizes) in 1 / SPREAD_UNIT, the tree's
+# fit (`tree_fit`)
 _REPORT_SIZES = 4
 _REPORT_LENGTH = 32
 
@@ -1169,6 +1166,7 @@ def _gather_report(a0: wp.array(dtype=wp.int32), i0: int, c0: int, a1: wp.array(
     report[8 + levels] = wp.where(fits, 1, 0)
     report[9 + levels] = winding_cuts[0]
     report[10 + levels] = spread_units(leaf_spread[0], leaf_spread[1])
+    report[11 + levels] = tree_fit(leaf_spread)
 
 
 @wp.kernel(enable_backward=False)
