@@ -1,7 +1,7 @@
 """Probe, not part of the product: what binding the winding walks' budget only to soups (SOUP_AREA) costs and buys.
 
     python3 bench/probes/probe_soup_gate.py [MESH.npz ...] [--device cuda:0] [--depth 7] [--sections 2000]
-        [--noise 0.02 0.05 0.2] [--fractions 1.0] [--rounds 2] [--out F.json]
+        [--noise 0.02 0.05 0.2] [--fractions 1.0] [--fat-areas 0.05 0.2] [--rounds 2] [--out F.json]
 
 Cases: a closed cylinder of `--sections` sections (long thin triangles, a sound surface whose walks open more nodes
 than the budget) and an open sheet of strips folded into `--layers` layers (sound, but a soup by its area), both signed
@@ -15,6 +15,7 @@ alternated over rounds in one process (the settings are fields of the BVH's view
     every   the budget binds there, and every node counts (the engine before FAT_AREA)
     always  the budget binds every walk, and every node counts (the engine before SOUP_AREA)
     never   no budget (the reference for the sides)
+    fat=X   as gated, with FAT_AREA = X (one such setting for each of `--fat-areas`)
 
 For each: the frame's wall time (synchronised), its walks cut, the frame's area in sphere areas (at the BVH's root),
 and the corners whose side differs from "never"'s; for the cylinder also the corners off the surface whose side
@@ -88,10 +89,16 @@ def main() -> None:
     parser.add_argument("--layers", type=int, default=110)
     parser.add_argument("--noise", type=float, nargs="+", default=[0.02, 0.05, 0.2])
     parser.add_argument("--fractions", type=float, nargs="+", default=[1.0])
+    parser.add_argument("--fat-areas", type=float, nargs="*", default=[],
+                        help="also run the gated budget with these values of FAT_AREA")
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     device = start_warp(args.device)
+    settings = ["never", "gated", "every", "always"]
+    for fat_area in args.fat_areas:
+        SETTINGS[f"fat={fat_area:g}"] = (WINDING_BUDGET, SOUP_AREA, fat_area)
+        settings.append(f"fat={fat_area:g}")
     cylinder = trimesh.creation.cylinder(radius=0.5, height=2.0, sections=args.sections)
     cases = [{"name": f"cylinder {args.sections}", "sign": "winding", "frame": None,
               "vertices": np.asarray(cylinder.vertices, np.float32), "faces": np.asarray(cylinder.faces, np.int32)}]
@@ -113,7 +120,7 @@ def main() -> None:
     for case in cases:
         reference = None
         for round_index in range(args.rounds):
-            for setting in ("never", "gated", "every", "always"):
+            for setting in settings:
                 row = run_case(case, setting, args.depth, device)
                 values = row.pop("values")
                 reference = values if reference is None else reference
@@ -123,10 +130,10 @@ def main() -> None:
                 print(json.dumps(row), flush=True)
     print(f"\n{report['device']}, {report['date']}, depth {args.depth}, budget {WINDING_BUDGET}, "
           f"soup at {SOUP_AREA:g} sphere areas, fat nodes at {FAT_AREA:g} disc areas:")
-    print(f"{'case':>32} {'setting':>7} {'areas':>7} {'wall s':>8} {'walks cut':>10} {'corners':>9} "
+    print(f"{'case':>32} {'setting':>8} {'areas':>7} {'wall s':>8} {'walks cut':>10} {'corners':>9} "
           f"{'sides unlike never':>19} {'unlike the solid':>17}")
     for r in report["rows"]:
-        print(f"{r['case'][-32:]:>32} {r['setting']:>7} {r['sphere_areas']:>7.2f} {r['wall_s']:>8.3f} "
+        print(f"{r['case'][-32:]:>32} {r['setting']:>8} {r['sphere_areas']:>7.2f} {r['wall_s']:>8.3f} "
               f"{r['winding_walks_cut']:>10} {r['corners']:>9} {r['sides_unlike_never']:>19} "
               f"{r.get('sides_unlike_the_solid', ''):>17}")
     if args.out:
