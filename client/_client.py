@@ -608,7 +608,7 @@ class RemoteObject:
 
     def slice(
         self,
-        axis: str,
+        axis: str | int,
         position: float,
         *,
         resolution: int = 256,
@@ -617,7 +617,10 @@ class RemoteObject:
         corners: bool = False,
         timeout: float | None = None,
     ) -> SliceReply:
-        """Signed distances on the plane `axis` = `position` and the octree cells it crosses (SliceRequest)."""
+        """Signed distances on the plane `axis` = `position` and the octree cells it crosses (SliceRequest).
+        `axis` is "x", "y" or "z", or 0, 1 or 2 as the engine's `DistanceField.slice` takes it."""
+        if isinstance(axis, (int, np.integer)) and not isinstance(axis, (bool, np.bool_)) and 0 <= axis <= 2:
+            axis = "xyz"[int(axis)]
         request = SliceRequest(
             self.name, axis, position, resolution=resolution, levels=levels, cells=cells, corners=corners,
             registration=self._registration,

@@ -320,6 +320,12 @@ def test_slices_pass_through(worker: ThreadWorker, client: Client) -> None:
     np.testing.assert_allclose(cut.cell_boxes[:, 1, 0], [0.25, 0.125, 0.0625])
     bare = obj.slice("x", 0.0, resolution=4, cells=False)
     assert bare.cell_boxes is None and bare.cell_levels is None and bare.cell_flags is None
+    by_index = obj.slice(np.int64(1), 0.25, resolution=16, levels=(2, 9))  # the engine's axis indices, as it takes them
+    assert by_index.axis == "y"
+    np.testing.assert_array_equal(by_index.grid, cut.grid)
+    for bad in (3, -1, True):
+        with pytest.raises(InvalidOptionError, match="axis"):
+            obj.slice(bad, 0.0)
 
 
 def test_mesh_follows_the_applied_frame(worker: ThreadWorker, client: Client, raw: zenoh.Session) -> None:
