@@ -197,6 +197,17 @@ def test_auto_takes_the_sah_tree_on_the_cpu_and_mortons_on_cuda(device):
                                   asked.query(points, mode="exact", outputs=("distance", "face")).face)
 
 
+def test_sah_is_refused_clearly_where_warp_cannot_run_its_cpu_builder(device, monkeypatch):
+    """The SAH tree is made on Warp's CPU back-end whatever the device: a Warp without its CPU compiler (as a GPU
+    machine's may be installed) gets a clear refusal naming the way out, not an error from inside Warp."""
+    vertices, faces = meshes.load("box")
+    monkeypatch.setattr(_bvh_shape.wp, "is_cpu_available", lambda: False)
+    with pytest.raises(InvalidInputError, match="bvh='sah' makes its tree on Warp's CPU back-end.*use bvh='morton'"):
+        DistanceField(vertices, faces, depth=3, bvh="sah", device=device)
+    if device != "cpu":  # the radix tree needs no CPU back-end
+        DistanceField(vertices, faces, depth=3, bvh="auto", device=device)
+
+
 def test_the_bvh_shape_is_checked_and_a_single_triangle_needs_none(device):
     vertices, faces = meshes.load("single-triangle")
     with pytest.raises(InvalidInputError, match="bvh must be one of auto, morton, sah; got 'kd'"):

@@ -33,6 +33,7 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
+from badf.server.adf._inputs import InvalidInputError
 from badf.server.adf._threads import cpu_threads, shared_pool
 
 BINS = 32
@@ -63,7 +64,13 @@ def resolve_shape(requested: str, on_cpu: bool) -> str:
     7) updated 3 to 10% faster and answered exact queries 10 to 20% faster on it, and registered 5 to 12% slower at
     depth 5 and about as fast at depth 7, where the first frame's searches win the shape's time back. On an H200 the
     radix tree is linked on the device within the build, and the shape's 40 to 60 ms of host time take 150 to 500
-    frames to win back (docs/engine.md, "The BVH's shape")."""
+    frames to win back (docs/engine.md, "The BVH's shape").
+
+    The SAH tree is made by a kernel on Warp's CPU back-end whatever the object's device, so a Warp that cannot run
+    it (installed without its CPU compiler) refuses "sah" here, before anything is built."""
+    if requested == "sah" and not wp.is_cpu_available():
+        raise InvalidInputError("bvh='sah' makes its tree on Warp's CPU back-end, which this Warp cannot run (its CPU "
+                                "compiler, warp-clang, is missing); use bvh='morton' or 'auto'")
     if requested != "auto":
         return requested
     return "sah" if on_cpu else "morton"
