@@ -869,8 +869,10 @@ def _winding_number_function(careful: bool):
         area: a soup's piled triangles; a thin node, of long thin triangles however many layers deep, is opened
         uncounted, but on a misfit tree every node counts); the nodes still waiting then take their expansion where
         p lies beyond their radius and are left out where it lies within, and the walk counts itself in
-        `bvh.winding_cuts` (at `bvh.cut_slot`). Elsewhere a walk runs whole, however many nodes it opens. A thin
-        node waits on the stack as -1 - its id."""
+        `bvh.winding_cuts` (at `bvh.cut_slot`). Elsewhere a walk runs whole, however many nodes it opens. The budget
+        is spent as a node is pushed, not as it is opened, so that it costs an unbound walk nothing (the first form,
+        which marked thin nodes on the stack and counted them as they were opened, made the bunny's update 0.087 ms
+        longer on an H200)."""
         total = float(0.0)
         cancelled = bool(False)
         if bvh.internal_count == 0:
@@ -891,12 +893,7 @@ def _winding_number_function(careful: bool):
         thin_free = bounded and not misfit
         while count > 0 and (budget > 0 or not bounded):
             count -= 1
-            node = nodes[count]
-            if node < 0:
-                node = -1 - node
-            else:
-                budget -= 1
-            slot = 2 * node
+            slot = 2 * nodes[count]
             for side in range(2):
                 child = bvh.slot_child[slot + side]
                 if child >= bvh.internal_count:  # a single triangle: its dipole far away, else its solid angle
@@ -920,24 +917,24 @@ def _winding_number_function(careful: bool):
                     if dist > bvh.far_field * centre_radius[3]:
                         total += _far_field(bvh, child, offset / dist, dist)
                     else:
-                        thin = False
-                        if thin_free:
-                            area = load_vec4(bvh.node_moments, 4 * child + 1)[3]
-                            thin = area <= bvh.fat_area * wp.pi * centre_radius[3] * centre_radius[3]
-                        nodes[count] = wp.where(thin, -1 - child, child)
+                        if bounded:  # the budget is spent as nodes are pushed, so that an unbound walk pays nothing
+                            if thin_free:
+                                area = load_vec4(bvh.node_moments, 4 * child + 1)[3]
+                                if area > bvh.fat_area * wp.pi * centre_radius[3] * centre_radius[3]:
+                                    budget -= 1
+                            else:
+                                budget -= 1
+                        nodes[count] = child
                         count += 1
         if count > 0:  # the budget is spent (a soup of large triangles): what waits is summed roughly, or left out
             wp.atomic_add(bvh.winding_cuts, bvh.cut_slot, 1)
             while count > 0:
                 count -= 1
-                node = nodes[count]
-                if node < 0:
-                    node = -1 - node
-                centre_radius = load_vec4(bvh.node_moments, 4 * node)
+                centre_radius = load_vec4(bvh.node_moments, 4 * nodes[count])
                 offset = _xyz(centre_radius) - p
                 dist = wp.length(offset)
                 if dist > centre_radius[3]:
-                    total += _far_field(bvh, node, offset / dist, dist)
+                    total += _far_field(bvh, nodes[count], offset / dist, dist)
         return total * _INV_FOUR_PI, cancelled
 
     winding_number.__name__ = winding_number.__qualname__ = "winding_number_careful" if careful else "winding_number"
