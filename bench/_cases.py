@@ -25,19 +25,20 @@ from badf.server._mesh_files import read_mesh
 ALL_OUTPUTS = ("distance", "closest_point", "normal", "face")
 
 
-def folded_sheet(layers: int = 110, strips: int = 20) -> tuple[np.ndarray, np.ndarray]:
+def folded_sheet(layers: int = 110, strips: int = 20, panels: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """An open sheet folded into `layers` flat layers a 1/(layers - 1) apart across a unit square, each of `strips`
-    strips 1 long and 1/`strips` wide, with a fold of as many strips between each two. By default 8,760 triangles 20
-    times as long as wide, 11.8 times the area of the sphere around them (a soup by SOUP_AREA), though none crosses
-    another: the winding walks' budget counts only fat nodes (FAT_AREA) for such a surface."""
+    strips 1 long and 1/`strips` wide (cut across into `panels` panels each), with a fold of as many strips between
+    each two. By default 8,760 triangles 20 times as long as wide, 11.8 times the area of the sphere around them (a
+    soup by SOUP_AREA), though none crosses another: the winding walks' budget counts only fat nodes (FAT_AREA) for
+    such a surface."""
     lift = 1.0 / (layers - 1)
-    # the profile in (y, z): across a layer, then up to the next one
+    # the profile in (y, z): across a layer in `panels` steps, then up to the next one
     profile = [(0.0, 0.0)]
     for k in range(layers):
-        y = 1.0 if k % 2 == 0 else 0.0
-        profile.append((y, k * lift))
+        start, end = (0.0, 1.0) if k % 2 == 0 else (1.0, 0.0)
+        profile.extend((start + (end - start) * t, k * lift) for t in np.linspace(0.0, 1.0, panels + 1)[1:])
         if k + 1 < layers:
-            profile.append((y, (k + 1) * lift))
+            profile.append((end, (k + 1) * lift))
     xs = np.linspace(0.0, 1.0, strips + 1)
     vertices = np.array([(x, y, z) for y, z in profile for x in xs], np.float32)
     row = strips + 1
