@@ -594,7 +594,7 @@ TREE_MISFITS = wp.constant(2)  # due, and so far off that a frame whose walk was
 def tree_fit(sums: wp.array(dtype=wp.int64)) -> int:
     """How the tree fits this frame, from Bvh.measure_spread's sums: TREE_DUE past RELINK_SPREAD times the linking
     frame's spread (or the floor), TREE_MISFITS where it also passes RERUN_SPREAD, else TREE_FITS. The frame's report
-    carries it to the host (`DistanceField._watch_tree`, `_rebuild`), and the winding walks read it: one rule for both."""
+    carries it to the host (`DistanceField._relink_due`, `_rebuild`), and the winding walks read it: one rule for both."""
     spread = spread_units(sums[0], sums[1])
     linked = wp.max(spread_units(sums[2], sums[3]), _RELINK_FLOOR_UNITS)
     if float(spread) <= _RELINK_SPREAD * float(linked):

@@ -290,7 +290,7 @@ class _Counters:
     # chunks of walks run side by side and whose atomic adds are not atomic between them, the count may fall a few
     # short (15,846 to 15,849 for one frame); only whether it is zero decides anything
     winding_walks_cut: int = 0
-    bvh_relinks: int = 0  # frames that linked the BVH again, which had come to misfit the frames (_watch_tree)
+    bvh_relinks: int = 0  # frames that linked the BVH again, which had come to misfit the frames (_relink_due)
 
 
 class DistanceField:
@@ -411,10 +411,9 @@ class DistanceField:
         self._rigid_run = 0  # rigid frames since the last rebuild
         self._scratch_kept_frames = _SCRATCH_GIVEN_BACK_AFTER
         self._counters = _Counters()
-        # the BVH's leaf spread (Bvh.measure_spread) in the last frame and in the last that linked the tree, and
-        # whether the next frame links it again because the tree has come to misfit the frames it is refitted to
+        # the BVH's leaf spread (Bvh.measure_spread) in the last frame, and how the tree fits it (`tree_fit`, from the
+        # frame's report: `_relink_due`)
         self._tree_spread, self._tree_fit = 0.0, 0
-        self._relink_due = False
 
         # the first frame's cell set is sized from the surface area it may refine: a region's share of it (a
         # small box at depth 10 kept 452 MiB of scratch sized for the whole mesh; thirteenth outside check)
@@ -915,17 +914,17 @@ class DistanceField:
                 self._planned = True
             self._corners.keep_frame(self._report_on_device, self._fits_at, queued=self._keep_queued)
         self._watch_plan()
-        self._watch_tree()
         self._counters.last_update_wall_ms = (time.perf_counter() - wall) * 1e3
 
-    def _watch_tree(self) -> None:
-        """After a frame: whether the next one links the BVH again. A tree linked on Morton codes is refitted to later
+    @property
+    def _relink_due(self) -> bool:
+        """Whether the next frame links the BVH again. A tree linked on Morton codes is refitted to later
         frames while the domain holds them; once its leaves lie RELINK_SPREAD times as far apart for their size as
         in the frame it was linked on (a violent frame's soup, then the calm mesh: every walk then runs long), the
         next frame links it on its own codes. The device decides it (`tree_fit`, in the frame's report), from the
         sums it keeps of the linking frame; a frame that linked the tree fits it, and a tree that is never measured
         (the SAH's shape, kept) always fits."""
-        self._relink_due = self._tree_fit >= TREE_DUE
+        return self._tree_fit >= TREE_DUE
 
     def _watch_plan(self) -> None:
         """After a frame: give back a plan that has long held far more than the frames need. Once each of
