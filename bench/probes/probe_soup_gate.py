@@ -130,10 +130,11 @@ def main() -> None:
                 print(json.dumps(row), flush=True)
     print(f"\n{report['device']}, {report['date']}, depth {args.depth}, budget {WINDING_BUDGET}, "
           f"soup at {SOUP_AREA:g} sphere areas, fat nodes at {FAT_AREA:g} disc areas:")
-    print(f"{'case':>32} {'setting':>8} {'areas':>7} {'wall s':>8} {'walks cut':>10} {'corners':>9} "
+    width = max(len("case"), *(len(r["case"]) for r in report["rows"]))
+    print(f"{'case':>{width}} {'setting':>8} {'areas':>7} {'wall s':>8} {'walks cut':>10} {'corners':>9} "
           f"{'sides unlike never':>19} {'unlike the solid':>17}")
     for r in report["rows"]:
-        print(f"{r['case'][-32:]:>32} {r['setting']:>8} {r['sphere_areas']:>7.2f} {r['wall_s']:>8.3f} "
+        print(f"{r['case']:>{width}} {r['setting']:>8} {r['sphere_areas']:>7.2f} {r['wall_s']:>8.3f} "
               f"{r['winding_walks_cut']:>10} {r['corners']:>9} {r['sides_unlike_never']:>19} "
               f"{r.get('sides_unlike_the_solid', ''):>17}")
     if args.out:
