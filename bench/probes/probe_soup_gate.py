@@ -7,13 +7,14 @@ Cases: a closed cylinder of `--sections` sections (long thin triangles, a sound 
 than the budget) and an open sheet of strips folded into `--layers` layers (sound, but a soup by its area), both signed
 by winding numbers, and each mesh's frame with every vertex thrown up to each `--noise` of
 the box's extent, kept in the box, after three calm frames (sign "auto"); with `--fractions` below 1, only that share
-of the vertices (picked at random) is thrown: a frame only part of which is violent. Each case runs under four settings,
+of the vertices (picked at random) is thrown: a frame only part of which is violent. Each case runs under four or five settings,
 alternated over rounds in one process (the settings are fields of the BVH's view, read when an object is made):
 
     gated   the engine's: the budget binds where the frame's area passes SOUP_AREA sphere areas, and counts only the
             nodes of more than FAT_AREA times their disc's area
     every   the budget binds there, and every node counts (the engine before FAT_AREA)
     always  the budget binds every walk, and every node counts (the engine before SOUP_AREA)
+    fat-always  the budget binds every walk, and counts only FAT_AREA's fat nodes (no soup gate; with --fat-always)
     never   no budget (the reference for the sides)
     fat=X   as gated, with FAT_AREA = X (one such setting for each of `--fat-areas`)
 
@@ -38,7 +39,8 @@ from badf.server.adf import DistanceField, _bvh  # noqa: E402
 from badf.server.adf._tolerances import FAT_AREA, SOUP_AREA, WINDING_BUDGET  # noqa: E402
 
 SETTINGS = {"gated": (WINDING_BUDGET, SOUP_AREA, FAT_AREA), "every": (WINDING_BUDGET, SOUP_AREA, 0.0),
-            "always": (WINDING_BUDGET, 0.0, 0.0), "never": (2**30, float("inf"), 0.0)}
+            "always": (WINDING_BUDGET, 0.0, 0.0), "fat-always": (WINDING_BUDGET, 0.0, FAT_AREA),
+            "never": (2**30, float("inf"), 0.0)}
 
 
 def thrown(vertices: np.ndarray, noise: float, fraction: float = 1.0) -> np.ndarray:
@@ -91,11 +93,12 @@ def main() -> None:
     parser.add_argument("--fractions", type=float, nargs="+", default=[1.0])
     parser.add_argument("--fat-areas", type=float, nargs="*", default=[],
                         help="also run the gated budget with these values of FAT_AREA")
+    parser.add_argument("--fat-always", action="store_true", help="also run the fat count with no soup gate")
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     device = start_warp(args.device)
-    settings = ["never", "gated", "every", "always"]
+    settings = ["never", "gated", "every", "always"] + (["fat-always"] if args.fat_always else [])
     for fat_area in args.fat_areas:
         SETTINGS[f"fat={fat_area:g}"] = (WINDING_BUDGET, SOUP_AREA, fat_area)
         settings.append(f"fat={fat_area:g}")

@@ -869,10 +869,10 @@ def _winding_number_function(careful: bool):
         area: a soup's piled triangles; a thin node, of long thin triangles however many layers deep, is opened
         uncounted, but on a misfit tree every node counts); the nodes still waiting then take their expansion where
         p lies beyond their radius and are left out where it lies within, and the walk counts itself in
-        `bvh.winding_cuts` (at `bvh.cut_slot`). Elsewhere a walk runs whole, however many nodes it opens. The budget
-        is spent as a node is pushed, not as it is opened, so that it costs an unbound walk nothing (the first form,
-        which marked thin nodes on the stack and counted them as they were opened, made the bunny's update 0.087 ms
-        longer on an H200)."""
+        `bvh.winding_cuts` (at `bvh.cut_slot`). Elsewhere a walk runs whole, however many nodes it opens: its budget is
+        one it cannot spend, and it reads no node's area. The budget is spent as a node is pushed, not as it is
+        opened (the first form, which marked thin nodes on the stack and counted them as they were opened, made the
+        bunny's update 0.087 ms longer on an H200), and one budget and one fat scale stand for the walk's kind."""
         total = float(0.0)
         cancelled = bool(False)
         if bvh.internal_count == 0:
@@ -885,13 +885,18 @@ def _winding_number_function(careful: bool):
         nodes = stack_int()
         nodes[0] = 0
         count = int(1)
-        budget = bvh.winding_budget
-        # on a misfit tree every node counts: there a calm frame's nodes gather small triangles from far apart, thin
-        # by their area, and the walks must meet the budget for the frame to run again on a tree of its own
-        misfit = tree_misfits(bvh)
-        bounded = misfit or is_soup(bvh)
-        thin_free = bounded and not misfit
-        while count > 0 and (budget > 0 or not bounded):
+        # An unbound walk gets a budget it cannot spend: it pushes each internal node at most once, the root not at
+        # all. In a soup only fat nodes count (a node counts where its area passes `fat` times its radius squared); on
+        # a misfit tree every node counts (fat < 0): there a calm frame's nodes gather small triangles from far apart,
+        # thin by their area, and the walks must meet the budget for the frame to run again on a tree of its own.
+        budget = bvh.internal_count
+        fat = float(-1.0)
+        if tree_misfits(bvh):
+            budget = bvh.winding_budget
+        elif is_soup(bvh):
+            budget = bvh.winding_budget
+            fat = bvh.fat_area * wp.pi
+        while count > 0 and budget > 0:
             count -= 1
             slot = 2 * nodes[count]
             for side in range(2):
@@ -917,13 +922,10 @@ def _winding_number_function(careful: bool):
                     if dist > bvh.far_field * centre_radius[3]:
                         total += _far_field(bvh, child, offset / dist, dist)
                     else:
-                        if bounded:  # the budget is spent as nodes are pushed, so that an unbound walk pays nothing
-                            if thin_free:
-                                area = load_vec4(bvh.node_moments, 4 * child + 1)[3]
-                                if area > bvh.fat_area * wp.pi * centre_radius[3] * centre_radius[3]:
-                                    budget -= 1
-                            else:
-                                budget -= 1
+                        if fat < 0.0:  # spent as nodes are pushed: an unbound walk reads no area
+                            budget -= 1
+                        elif load_vec4(bvh.node_moments, 4 * child + 1)[3] > fat * centre_radius[3] * centre_radius[3]:
+                            budget -= 1
                         nodes[count] = child
                         count += 1
         if count > 0:  # the budget is spent (a soup of large triangles): what waits is summed roughly, or left out
