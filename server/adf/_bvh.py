@@ -856,46 +856,22 @@ def is_soup(bvh: BvhView) -> bool:
     return load_vec4(bvh.node_moments, 1)[3] > bvh.soup_area * 4.0 * wp.pi * radius * radius
 
 
-def _winding_number_function(careful: bool):
-    """The winding number's walk; returns (w, whether a near triangle's float32 solid angle cancelled, so
-    that w may be wrong). `careful`: such solid angles are worked out in float64 (`solid_angle_careful`),
-    and none is left cancelled; otherwise float32 throughout, whose registers the corners' winding kernel
-    can afford."""
+def _winding_walk(careful: bool, bounded: bool):
+    """The winding number's walk below the root, for `_winding_number_function`; returns (4 pi w, whether a near
+    triangle's float32 solid angle cancelled). `careful`: such solid angles are worked out in float64
+    (`solid_angle_careful`), and none is left cancelled; otherwise float32 throughout. `bounded`: the walk opens at
+    most `bvh.winding_budget` internal nodes, counting only those whose area passes `fat` times their radius squared
+    (every node where fat < 0), and then sums what waits roughly; else it runs whole and has no budget at all."""
 
-    def winding_number(bvh: BvhView, p: wp.vec3):
-        """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018).
-        In a soup (`is_soup`), or on a tree that misfits the frame (`tree_misfits`: the frame then runs again), a
-        walk opens at most `bvh.winding_budget` fat internal nodes (of more than `bvh.fat_area` times their disc's
-        area: a soup's piled triangles; a thin node, of long thin triangles however many layers deep, is opened
-        uncounted, but on a misfit tree every node counts); the nodes still waiting then take their expansion where
-        p lies beyond their radius and are left out where it lies within, and the walk counts itself in
-        `bvh.winding_cuts` (at `bvh.cut_slot`). Elsewhere a walk runs whole, however many nodes it opens: its budget is
-        one it cannot spend, and it reads no node's area. The budget is spent as a node is pushed, not as it is
-        opened (the first form, which marked thin nodes on the stack and counted them as they were opened, made the
-        bunny's update 0.087 ms longer on an H200), and one budget and one fat scale stand for the walk's kind."""
+    def walk(bvh: BvhView, p: wp.vec3, fat: float):
         total = float(0.0)
         cancelled = bool(False)
-        if bvh.internal_count == 0:
-            a, b, c = leaf_triangle(bvh, 0)  # a single triangle, and no tree
-            if wp.static(careful):
-                total = solid_angle_careful(p, a, b, c)
-            else:
-                total, cancelled = solid_angle_checked(p, a, b, c)
-            return total * _INV_FOUR_PI, cancelled
         nodes = stack_int()
         nodes[0] = 0
         count = int(1)
-        # An unbound walk gets a budget it cannot spend: it pushes each internal node at most once, the root not at
-        # all. In a soup only fat nodes count (a node counts where its area passes `fat` times its radius squared); on
-        # a misfit tree every node counts (fat < 0): there a calm frame's nodes gather small triangles from far apart,
-        # thin by their area, and the walks must meet the budget for the frame to run again on a tree of its own.
-        budget = bvh.internal_count
-        fat = float(-1.0)
-        if tree_misfits(bvh):
+        budget = int(1)  # a whole walk's, which never runs out
+        if wp.static(bounded):
             budget = bvh.winding_budget
-        elif is_soup(bvh):
-            budget = bvh.winding_budget
-            fat = bvh.fat_area * wp.pi
         while count > 0 and budget > 0:
             count -= 1
             slot = 2 * nodes[count]
@@ -922,21 +898,61 @@ def _winding_number_function(careful: bool):
                     if dist > bvh.far_field * centre_radius[3]:
                         total += _far_field(bvh, child, offset / dist, dist)
                     else:
-                        if fat < 0.0:  # spent as nodes are pushed: an unbound walk reads no area
-                            budget -= 1
-                        elif load_vec4(bvh.node_moments, 4 * child + 1)[3] > fat * centre_radius[3] * centre_radius[3]:
-                            budget -= 1
+                        if wp.static(bounded):  # spent as nodes are pushed
+                            if fat < 0.0:
+                                budget -= 1
+                            elif load_vec4(bvh.node_moments, 4 * child + 1)[3] > fat * centre_radius[3] * centre_radius[3]:
+                                budget -= 1
                         nodes[count] = child
                         count += 1
-        if count > 0:  # the budget is spent (a soup of large triangles): what waits is summed roughly, or left out
-            wp.atomic_add(bvh.winding_cuts, bvh.cut_slot, 1)
-            while count > 0:
-                count -= 1
-                centre_radius = load_vec4(bvh.node_moments, 4 * nodes[count])
-                offset = _xyz(centre_radius) - p
-                dist = wp.length(offset)
-                if dist > centre_radius[3]:
-                    total += _far_field(bvh, nodes[count], offset / dist, dist)
+        if wp.static(bounded):
+            if count > 0:  # the budget is spent (a soup of large triangles): what waits is summed roughly, or left out
+                wp.atomic_add(bvh.winding_cuts, bvh.cut_slot, 1)
+                while count > 0:
+                    count -= 1
+                    centre_radius = load_vec4(bvh.node_moments, 4 * nodes[count])
+                    offset = _xyz(centre_radius) - p
+                    dist = wp.length(offset)
+                    if dist > centre_radius[3]:
+                        total += _far_field(bvh, nodes[count], offset / dist, dist)
+        return total, cancelled
+
+    walk.__name__ = walk.__qualname__ = ("bounded" if bounded else "whole") + ("_careful" if careful else "") + "_walk"
+    return wp.func(walk)
+
+
+def _winding_number_function(careful: bool):
+    """The winding number; returns (w, whether a near triangle's float32 solid angle cancelled, so that w may be
+    wrong). `careful`: such solid angles are worked out in float64 (`solid_angle_careful`), and none is left
+    cancelled; otherwise float32 throughout, whose registers the corners' winding kernel can afford."""
+    whole_walk, bounded_walk = _winding_walk(careful, False), _winding_walk(careful, True)
+
+    def winding_number(bvh: BvhView, p: wp.vec3):
+        """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018).
+        In a soup (`is_soup`), or on a tree that misfits the frame (`tree_misfits`: the frame then runs again), a
+        walk opens at most `bvh.winding_budget` fat internal nodes (of more than `bvh.fat_area` times their disc's
+        area: a soup's piled triangles; a thin node, of long thin triangles however many layers deep, is opened
+        uncounted, but on a misfit tree every node counts, as a calm frame's nodes there gather small triangles from
+        far apart, thin by their area, and its walks must meet the budget for the frame to run again on a tree of
+        its own); the nodes still waiting then take their expansion where p lies beyond their radius and are left
+        out where it lies within, and the walk counts itself in `bvh.winding_cuts` (at `bvh.cut_slot`). Elsewhere a
+        walk runs whole, however many nodes it opens, in a loop of its own with no budget: the budget's count beside
+        the walk cost the corners' kernel registers it spilled (ptxas for sm_90: 124 bytes of spill stores against 36
+        without one; the first budget, counted as nodes were opened, made the bunny's update 0.087 ms longer on an
+        H200, and spent as they were pushed still 0.055 ms on an H100)."""
+        if bvh.internal_count == 0:
+            a, b, c = leaf_triangle(bvh, 0)  # a single triangle, and no tree
+            if wp.static(careful):
+                return solid_angle_careful(p, a, b, c) * _INV_FOUR_PI, False
+            angle, near_cancelled = solid_angle_checked(p, a, b, c)
+            return angle * _INV_FOUR_PI, near_cancelled
+        total = float(0.0)
+        cancelled = bool(False)
+        misfit = tree_misfits(bvh)
+        if misfit or is_soup(bvh):  # one call of the bounded walk, as each call is inlined
+            total, cancelled = bounded_walk(bvh, p, wp.where(misfit, -1.0, bvh.fat_area * wp.pi))
+        else:
+            total, cancelled = whole_walk(bvh, p, 0.0)
         return total * _INV_FOUR_PI, cancelled
 
     winding_number.__name__ = winding_number.__qualname__ = "winding_number_careful" if careful else "winding_number"
