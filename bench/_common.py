@@ -30,7 +30,7 @@ def find_mesh(name: str) -> pathlib.Path:
     """A mesh file's path as given, or the .npz of a named mesh (e.g. "stanford-bunny"); FileNotFoundError
     naming the folders searched."""
     given = pathlib.Path(name)
-    if given.suffix or len(given.parts) > 1:  # a path: its reader says what is wrong with it
+    if given.suffix or len(given.parts) > 1 or given.is_file():  # a path: its reader says what is wrong with it
         return given
     for folder in mesh_folders():
         path = folder / f"{name}.npz"
@@ -58,7 +58,9 @@ def start_warp(requested: str | None) -> str:
 
     wp.config.log_level = wp.LOG_ERROR
     wp.init()
-    return requested or ("cuda:0" if wp.get_cuda_device_count() > 0 else "cpu")
+    if requested is not None:
+        return requested
+    return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
 
 
 def fill_sized_defaults(args, small: dict, full: dict) -> None:

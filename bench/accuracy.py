@@ -36,6 +36,9 @@ SHARED_MESHES = ("stanford-bunny", "armadillo-86k", "spot", "fandisk", "rocker-a
 # Midpoint subdivision of the bunny: every triangle into 4 coplanar ones, so the surface is the bunny's own.
 SUBDIVIDED = {"bunny-278k": 1, "bunny-1.1m": 2}
 SUBDIVIDED_FROM = "stanford-bunny"
+# what runs when no --meshes is given: those of them not in the data folders are skipped (named ones never are)
+DEFAULT_MESHES = ",".join(SHARED_MESHES + tuple(SUBDIVIDED))
+DEFAULT_SWITCH_MESHES = "stanford-bunny,armadillo-86k,sumner_horse_gallop"
 POINT_SETS = ("uniform", "near", "surface")
 
 
@@ -419,10 +422,21 @@ def run(args: argparse.Namespace) -> int:
         print("badf bench accuracy: --meshes names no mesh", file=sys.stderr)
         return 2
     available = [name for name in names if _findable(name)]
-    for name in set(names) - set(available):
+    explicit = args.meshes != DEFAULT_MESHES  # names the user gave are all measured; the default's missing are skipped
+    for name in [n for n in names if n not in available]:
         if name not in SUBDIVIDED and (pathlib.Path(name).suffix or len(pathlib.Path(name).parts) > 1):
             print(f"badf bench accuracy: {name}: no such file", file=sys.stderr)  # a path, not a name to skip
             return 2
+        if explicit:
+            print(f"badf bench accuracy: --meshes {name}: not a mesh file here, nor a mesh in "
+                  f"{', '.join(map(str, mesh_folders()))} (set BADF_SHARED_DATA to a folder that holds it)",
+                  file=sys.stderr)
+            return 2
+    switches = [n for n in args.switch_meshes.split(",") if n and n != "none"]
+    strays = [n for n in switches if n not in names]
+    if args.switch_meshes != DEFAULT_SWITCH_MESHES and strays:
+        print(f"badf bench accuracy: --switch-meshes {', '.join(strays)}: not among --meshes", file=sys.stderr)
+        return 2
     if not available:  # before the stability table, which takes minutes
         print(f"badf bench accuracy: none of --meshes {args.meshes} is a mesh file or a mesh in "
               f"{', '.join(map(str, mesh_folders()))}; set BADF_SHARED_DATA to a folder that holds "
@@ -532,7 +546,7 @@ def write_outputs(report: dict, out_dir: pathlib.Path, slug: str) -> None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=None, help="cpu, cuda:0, ... (default: the first GPU, else cpu)")
-    parser.add_argument("--meshes", default=",".join(SHARED_MESHES + tuple(SUBDIVIDED)),
+    parser.add_argument("--meshes", default=DEFAULT_MESHES,
                         help="comma-separated mesh names (shared data set, or bunny-278k / bunny-1.1m) or mesh files "
                              "(.npz with vertices and faces, or any file trimesh reads)")
     parser.add_argument("--depths", default="5,6,7,8,9", help="ADF depths, comma-separated")
@@ -543,7 +557,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeat", type=int, default=5, help="timed repeats per measurement (at most)")
     parser.add_argument("--budget", type=float, default=1.0, help="seconds after which a measurement stops repeating")
     parser.add_argument("--switch-depth", type=int, default=7, help="depth of the exact-query and switch rows")
-    parser.add_argument("--switch-meshes", default="stanford-bunny,armadillo-86k,sumner_horse_gallop",
+    parser.add_argument("--switch-meshes", default=DEFAULT_SWITCH_MESHES,
                         help="meshes that get the switch rows")
     parser.add_argument("--peers", action="store_true", help="also measure CPU peers (Open3D, libigl) where installed")
     parser.add_argument("--no-stability", dest="stability", action="store_false", help="skip the stability table")

@@ -233,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, count in (("--rounds", args.rounds), ("--frames", args.frames), ("--points", args.points)):
         if count < 1:
             parser.error(f"{name} must be at least 1, got {count}")
-    device = args.device or ("cuda:0" if _has_cuda() else "cpu")
+    device = args.device if args.device is not None else ("cuda:0" if _has_cuda() else "cpu")
     report = measure(variants, find_mesh(args.mesh), depth=args.depth, device=device, rounds=args.rounds,
                      frames=args.frames, warm_up=max(args.warm_up, 0), points=args.points)
     _print(report)

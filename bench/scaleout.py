@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
         gpu_count = visible_cuda_device_count()
     except NoCudaDeviceError as error:
         gpu_count, no_gpu = 0, str(error)
-    device = args.device or ("cuda" if gpu_count else "cpu")
+    device = args.device if args.device is not None else ("cuda" if gpu_count else "cpu")
     if device == "cuda" and not gpu_count:
         raise BenchFlagError(f"--device cuda: {no_gpu}")
     workers = args.workers or (gpu_count if device == "cuda" else 2)

@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     if args.frames is not None and args.frames < 1:
         print("badf demo: --frames must be at least 1", file=sys.stderr)
         return 2
-    if args.mesh and args.sequence:
+    if args.mesh is not None and args.sequence is not None:
         print("badf demo: give --mesh or --sequence, not both", file=sys.stderr)
         return 2
     # a flag of the other scene was run as if absent (outside check, 2026-11-22)
@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     except MeshFileError as error:
         print(f"badf demo: {error}", file=sys.stderr)
         return 2
-    device = args.device or _default_device()
+    device = _default_device() if args.device is None else args.device
     problem = device_problem(device)
     if problem is None and not args.no_viewer:
         problem = _host_problem(args.host)
@@ -263,10 +263,10 @@ def _run_morph(client, args, source, depth: int, stop: _StopFlag) -> int:
 
 def _morph_source(args):
     """(frame -> vertices, faces, object name)."""
-    if args.sequence:
+    if args.sequence is not None:
         frames, faces = read_frames(args.sequence)
         return (lambda k: frames[k % len(frames)]), faces, _key_safe(pathlib.Path(args.sequence).stem)
-    if args.mesh:
+    if args.mesh is not None:
         vertices, faces = read_mesh(args.mesh)
         name = pathlib.Path(args.mesh).stem
     else:

@@ -4,13 +4,18 @@ One reader for `badf demo` and every benchmark: an .npz with `vertices` (N, 3) o
 `faces` (M, 3), or any mesh file trimesh reads (.obj, .ply, .stl, .off, .glb, ...). A file that cannot be
 read, holds no triangles, has face indices out of range or vertices that are NaN or Inf, or that the
 engine would refuse (coordinates past its range, a first frame of zero extent), is a `MeshFileError`
-naming the file and what was wrong; the command line prints it as one line.
+naming the file and what was wrong; the command line prints it as one line. So is an .npz whose arrays
+declare more bytes than half the machine's memory (read before anything is unpacked), and an OBJ face
+index 0 (they count from 1). Relative (negative) OBJ indices, which trimesh reads against the file's last
+vertex, are made absolute first.
 """
 
 from __future__ import annotations
 
+import io
 import os
 import pathlib
+import re
 import zipfile
 
 import numpy as np
@@ -26,6 +31,8 @@ class MeshFileError(ValueError):
 def read_frames(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """(frames (T, N, 3), float64 where the file's are, else float32; faces int32 (M, 3)); a single mesh is one
     frame."""
+    if not os.fspath(path):
+        raise MeshFileError("an empty name where a mesh file was expected")
     path = pathlib.Path(path)
     if not path.exists():
         raise MeshFileError(f"{path}: no such file")
@@ -94,6 +101,7 @@ def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
 def _read_npz(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
     if not zipfile.is_zipfile(path):
         raise MeshFileError(f"{path}: not an .npz archive (numpy.savez writes one)")
+    _check_declared_sizes(path)
     try:
         with np.load(path, allow_pickle=False) as data:
             missing = [key for key in ("vertices", "faces") if key not in data.files]
@@ -106,11 +114,103 @@ def _read_npz(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
         raise MeshFileError(f"{path}: not a readable .npz ({type(error).__name__}: {error})") from None
 
 
+def _memory_available() -> int | None:
+    """Bytes of memory this machine could give a process now (MemAvailable), else half its memory, else None."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _check_declared_sizes(path: pathlib.Path) -> None:
+    """Refuse an .npz whose arrays declare, in their headers, more bytes than this machine has available: a few
+    megabytes of zeros compressed can declare gigabytes, which np.load would allocate and fill before any check
+    (4.7 GB of memory and 20 s for one of 4.7 MB, outside check, 2026-12-07)."""
+    available = _memory_available()
+    if available is None:
+        return
+    declared, arrays = 0, []
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for member in archive.infolist():
+                if not member.filename.endswith(".npy"):
+                    continue
+                with archive.open(member) as f:
+                    version = np.lib.format.read_magic(f)
+                    read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                                   else np.lib.format.read_array_header_2_0)
+                    shape, _, dtype = read_header(f)
+                declared += int(np.prod(shape, dtype=object)) * dtype.itemsize
+                arrays.append(f"{member.filename[:-4]} {shape} of {dtype}")
+    except Exception:  # a damaged or foreign member: np.load below names what is wrong with it
+        return
+    if declared > available:
+        raise MeshFileError(f"{path}: its arrays ({', '.join(arrays)}) declare {declared / 2**30:.1f} GiB, more than "
+                            f"the {available / 2**30:.1f} GiB this machine has available")
+
+
+# an OBJ face line's indices: v, v/vt, v//vn or v/vt/vn, each a whole number, negative ones relative
+_OBJ_ODD_INDEX = re.compile(rb"^[ \t]*f[ \t][^\n]*?(?:(?<=[\s/])-\d|(?<=[\s/])0+(?=[\s/]|$))", re.M)
+_OBJ_KINDS = {b"v": 0, b"vt": 1, b"vn": 2}
+
+
+def _obj_with_absolute_indices(path: pathlib.Path, text: bytes) -> bytes:
+    """The OBJ's text with relative (negative) face indices written as absolute ones, counted from the vertices,
+    texture and normal vertices before each face (trimesh reads them against the file's last vertex); a face index 0
+    is a MeshFileError, as OBJ counts from 1."""
+    counts = [0, 0, 0]
+    lines = text.split(b"\n")
+    for number, line in enumerate(lines):
+        words = line.split()
+        if not words:
+            continue
+        kind = _OBJ_KINDS.get(words[0])
+        if kind is not None:
+            counts[kind] += 1
+            continue
+        if words[0] != b"f":
+            continue
+        corners = []
+        for word in words[1:]:
+            parts = word.split(b"/")
+            for k, part in enumerate(parts[:3]):
+                if not part:
+                    continue
+                try:
+                    index = int(part)
+                except ValueError:
+                    raise MeshFileError(f"{path}: line {number + 1}: face index {part.decode(errors='replace')!r} "
+                                        "is not a whole number") from None
+                if index == 0:
+                    raise MeshFileError(f"{path}: line {number + 1}: face index 0 (OBJ indices count from 1)")
+                if index < 0:
+                    if counts[k] + index < 0:
+                        raise MeshFileError(f"{path}: line {number + 1}: relative face index {index}, but only "
+                                            f"{counts[k]} {('vertices', 'texture vertices', 'normals')[k]} come "
+                                            "before it")
+                    parts[k] = str(counts[k] + index + 1).encode()
+            corners.append(b"/".join(parts))
+        lines[number] = b"f " + b" ".join(corners)
+    return b"\n".join(lines)
+
+
 def _read_with_trimesh(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
     import trimesh
 
+    source, kind = str(path), None
+    if path.suffix.lower() == ".obj":
+        text = path.read_bytes()
+        if _OBJ_ODD_INDEX.search(text):  # most files have none, and skip the pass over every line
+            source, kind = io.BytesIO(_obj_with_absolute_indices(path, text)), "obj"
     try:
-        loaded = trimesh.load(str(path), force="mesh", process=False)
+        loaded = trimesh.load(source, file_type=kind, force="mesh", process=False)
     except Exception as error:  # trimesh raises many kinds for files it cannot parse
         raise MeshFileError(f"{path}: trimesh cannot read it ({type(error).__name__}: {error})") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:

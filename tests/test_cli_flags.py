@@ -74,7 +74,16 @@ CASES = [
     (["bench", "service", "--small", "--mesh", "<no-faces>", "--batches", "1024,8000000"], "--batches must be at most"),
     (["bench", "scaleout", "--small", "--mesh", "<no-faces>", "--seconds", "nan"], "--seconds must be a positive"),
     (["bench", "soak", "--device", "gpu3"], "--device 'gpu3' is not a device here"),
-    (["bench", "accuracy", "--meshes", "nosuchmesh"], "none of --meshes nosuchmesh is a mesh file"),
+    (["bench", "accuracy", "--meshes", "nosuchmesh"], "--meshes nosuchmesh: not a mesh file here, nor a mesh in"),
+    # a named mesh that is not there was skipped with exit status 0, and a stray --switch-meshes ignored, and
+    # empty values ran as if absent (thirty-first outside check)
+    (["bench", "accuracy", "--meshes", "spot,stanford-bunyy"], "--meshes stanford-bunyy: not a mesh file here"),
+    (["bench", "accuracy", "--meshes", "spot", "--switch-meshes", "nothere"], "--switch-meshes nothere: not among"),
+    (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--mesh", ""],
+     "an empty name where a mesh file was expected"),
+    (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--sequence", ""],
+     "an empty name where a mesh file was expected"),
+    (["demo", "--no-viewer", "--frames", "1", "--listen", "<free>", "--device", ""], "--device '' is not a device"),
     (["bench", "accuracy", "--render", "<not-npz>"], "not a results JSON file"),
     # refused after minutes of running, with a traceback (outside check, 2026-11-22)
     (["bench", "viewer", "--small", "--mesh", "<no-faces>", "--resolution", "100"],

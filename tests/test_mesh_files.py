@@ -103,3 +103,47 @@ def test_benchmarks_take_a_path_where_they_take_a_mesh_name(tmp_path) -> None:
     assert find_mesh("spot").name == "spot.npz"  # bundled with the tests
     with pytest.raises(FileNotFoundError, match="no-such-mesh.npz is in none of"):
         find_mesh("no-such-mesh")
+
+
+def test_relative_obj_indices_name_the_vertices_before_the_face(tmp_path) -> None:
+    # trimesh reads them against the file's last vertex: this file loaded as two copies of its second triangle
+    # (thirty-first outside check)
+    path = tmp_path / "relative.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf -3/-1 -2/-1 -1/-1\nv 0 0 5\nv 1 0 5\nv 0 1 5\nf -3 -2 -1\n"
+                    "f 1 -2 -1\n")
+    vertices, faces = read_mesh(path)
+    assert vertices[faces].tolist() == [[[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 0, 5], [1, 0, 5], [0, 1, 5]],
+                                        [[0, 0, 0], [1, 0, 5], [0, 1, 5]]]
+
+
+@pytest.mark.parametrize(("face", "message"), [
+    ("f 1 2 0", "line 5: face index 0 (OBJ indices count from 1)"),
+    ("f 1 2 -5", "line 5: relative face index -5, but only 4 vertices come before it"),
+    ("f 1/0 2/1 3/1", "line 5: face index 0"),
+])
+def test_obj_face_indices_that_name_no_vertex_are_refused(tmp_path, face: str, message: str) -> None:
+    path = tmp_path / "bad.obj"
+    path.write_text(f"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n{face}\n")
+    with pytest.raises(MeshFileError, match=re.escape(message)):
+        read_mesh(path)
+
+
+def test_an_npz_declaring_more_than_the_machine_has_is_refused_before_it_is_unpacked(tmp_path) -> None:
+    import io
+    import zipfile
+
+    header = io.BytesIO()  # a header that declares 2.4e13 bytes, and no data: np.load would allocate first
+    np.lib.format.write_array_header_1_0(header, {"descr": "<f8", "fortran_order": False, "shape": (10**12, 3)})
+    faces = io.BytesIO()
+    np.save(faces, np.array([[0, 1, 2]], np.int32))
+    path = tmp_path / "bomb.npz"
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("vertices.npy", header.getvalue())
+        archive.writestr("faces.npy", faces.getvalue())
+    with pytest.raises(MeshFileError, match=r"declare 22351\.7 GiB, more than the .* GiB this machine has available"):
+        read_mesh(path)
+
+
+def test_an_empty_name_is_not_the_current_folder() -> None:
+    with pytest.raises(MeshFileError, match="an empty name where a mesh file was expected"):
+        read_mesh("")
