@@ -5,7 +5,9 @@ and `ptxas -v` from a CUDA toolkit reports what the kernel would use.
     python3 bench/probes/probe_spills.py [--variant NAME=FOLDER ...] [--arch 90] [--ptxas PATH] [--out F.json]
 
 Each variant (a repository root or `.ab/NAME`, as `bench/interleave.py` takes them; default: this checkout) is
-compiled in a process of its own. The winding kernel is capped at 48 registers (`SIGN_MAX_REGISTERS`) and the
+compiled in a process of its own. The kernels: the corners' winding numbers, their searches (whole, and split), the
+sign kernel and the query kernel of a field signed by winding numbers (`SIGN_WINDING` = 2), which walk in float64
+where float32 cancels. The winding kernel is capped at 48 registers (`SIGN_MAX_REGISTERS`) and the
 searches at 64, so what grows is the spill traffic: bytes of spill stores and loads in the code (a static count,
 not how often they run), and the stack frame (the walks' node stacks, and the spills' slots). PTX from Warp's NVRTC
 may be newer than the toolkit's ptxas reads; its `.version` line is then lowered to the toolkit's (9.0 for CUDA
@@ -32,7 +34,8 @@ wp.config.quiet = True
 wp.init()
 from badf.server.adf import _distance
 kernels = {"winding": _distance.winding_kernel(), "searches": _distance._corner_searches(False),
-           "searches (split)": _distance._corner_searches(True)}
+           "searches (split)": _distance._corner_searches(True), "sign (winding)": _distance.sign_kernel(2),
+           "queries (winding)": _distance.query_kernel(2)}
 out = {}
 for name, kernel in kernels.items():
     folder = sys.argv[1] + "/" + name.replace(" ", "_").replace("(", "").replace(")", "")
@@ -101,9 +104,9 @@ def main() -> None:
                 rows.append({"variant": name, "kernel": kernel, **measure(pathlib.Path(paths[0]), ptxas, args.arch,
                                                                           version)})
     print(f"sm_{args.arch}, {ptxas} (PTX read as .version {version}):")
-    print(f"{'variant':>10} {'kernel':>17} {'registers':>10} {'stack frame':>12} {'spill stores':>13} {'spill loads':>12}")
+    print(f"{'variant':>10} {'kernel':>18} {'registers':>10} {'stack frame':>12} {'spill stores':>13} {'spill loads':>12}")
     for r in rows:
-        print(f"{r['variant']:>10} {r['kernel']:>17} {r['registers']:>10} {r['stack_frame_bytes']:>12} "
+        print(f"{r['variant']:>10} {r['kernel']:>18} {r['registers']:>10} {r['stack_frame_bytes']:>12} "
               f"{r['spill_store_bytes']:>13} {r['spill_load_bytes']:>12}")
     if args.out:
         with open(args.out, "w") as f:

@@ -860,18 +860,17 @@ def _winding_walk(careful: bool, bounded: bool):
     """The winding number's walk below the root, for `_winding_number_function`; returns (4 pi w, whether a near
     triangle's float32 solid angle cancelled). `careful`: such solid angles are worked out in float64
     (`solid_angle_careful`), and none is left cancelled; otherwise float32 throughout. `bounded`: the walk opens at
-    most `bvh.winding_budget` internal nodes, counting only those whose area passes `fat` times their radius squared
-    (every node where fat < 0), and then sums what waits roughly; else it runs whole and has no budget at all."""
+    most `budget` internal nodes, counting only those whose area passes `fat` times their radius squared (every node
+    where fat < 0), and then sums what waits roughly; else it runs whole, has no budget at all, and ignores both."""
 
-    def walk(bvh: BvhView, p: wp.vec3, fat: float):
+    def walk(bvh: BvhView, p: wp.vec3, budget: int, fat: float):
         total = float(0.0)
         cancelled = bool(False)
         nodes = stack_int()
         nodes[0] = 0
         count = int(1)
-        budget = int(1)  # a whole walk's, which never runs out
-        if wp.static(bounded):
-            budget = bvh.winding_budget
+        if wp.static(not bounded):
+            budget = 1  # a whole walk's, which never runs out
         while count > 0 and budget > 0:
             count -= 1
             slot = 2 * nodes[count]
@@ -936,10 +935,12 @@ def _winding_number_function(careful: bool):
         far apart, thin by their area, and its walks must meet the budget for the frame to run again on a tree of
         its own); the nodes still waiting then take their expansion where p lies beyond their radius and are left
         out where it lies within, and the walk counts itself in `bvh.winding_cuts` (at `bvh.cut_slot`). Elsewhere a
-        walk runs whole, however many nodes it opens, in a loop of its own with no budget: the budget's count beside
-        the walk cost the corners' kernel registers it spilled (ptxas for sm_90: 124 bytes of spill stores against 36
-        without one; the first budget, counted as nodes were opened, made the bunny's update 0.087 ms longer on an
-        H200, and spent as they were pushed still 0.055 ms on an H100)."""
+        walk runs whole, however many nodes it opens. The corners' float32 walk then runs a loop of its own with no
+        budget: the budget's count beside the walk cost the corners' kernel registers it spilled (ptxas for sm_90: 116
+        bytes of spill stores against 36 without one; counted as nodes were opened, the budget made the bunny's update
+        0.087 ms longer on an H200, and spent as they were pushed still 0.055 ms on an H100). The careful walk, inlined
+        at several places in the query and sign kernels, is one loop whose budget, where nothing binds, is one it
+        cannot spend."""
         if bvh.internal_count == 0:
             a, b, c = leaf_triangle(bvh, 0)  # a single triangle, and no tree
             if wp.static(careful):
@@ -949,10 +950,17 @@ def _winding_number_function(careful: bool):
         total = float(0.0)
         cancelled = bool(False)
         misfit = tree_misfits(bvh)
-        if misfit or is_soup(bvh):  # one call of the bounded walk, as each call is inlined
-            total, cancelled = bounded_walk(bvh, p, wp.where(misfit, -1.0, bvh.fat_area * wp.pi))
+        bound = misfit or is_soup(bvh)
+        fat = wp.where(bound and not misfit, bvh.fat_area * wp.pi, -1.0)
+        if wp.static(careful):
+            # one walk for every kind: the careful walk is called from several places in a kernel (queries, the sign
+            # kernel), each inlined, and a second walk at each spilled far more there. An unbound walk's budget is one
+            # it cannot spend: it pushes each internal node at most once, and the root not at all.
+            total, cancelled = bounded_walk(bvh, p, wp.where(bound, bvh.winding_budget, bvh.internal_count), fat)
+        elif bound:  # one call of each walk, as each call is inlined
+            total, cancelled = bounded_walk(bvh, p, bvh.winding_budget, fat)
         else:
-            total, cancelled = whole_walk(bvh, p, 0.0)
+            total, cancelled = whole_walk(bvh, p, 0, -1.0)
         return total * _INV_FOUR_PI, cancelled
 
     winding_number.__name__ = winding_number.__qualname__ = "winding_number_careful" if careful else "winding_number"
