@@ -44,8 +44,8 @@ for name, kernel in kernels.items():
 print(json.dumps(out))
 """
 
-_REPORT = re.compile(r"(\d+) bytes stack frame, (\d+) bytes spill stores, (\d+) bytes spill loads.*?Used (\d+) registers",
-                     re.S)
+_REPORT = re.compile(
+    r"(\d+) bytes stack frame, (\d+) bytes spill stores, (\d+) bytes spill loads.*?Used (\d+) registers", re.S)
 
 
 def find_ptxas(given: str | None) -> str:
@@ -95,16 +95,17 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as scratch:
         for name, folder in variants.items():
             root = _package_root(pathlib.Path(folder), pathlib.Path(scratch), name)
-            env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), *filter(None, [os.environ.get("PYTHONPATH")])]))
-            compiled = subprocess.run([sys.executable, "-c", _COMPILE, f"{scratch}/{name}-ptx", str(args.arch)], env=env,
-                                      capture_output=True, text=True)
+            path = os.pathsep.join([str(root), *filter(None, [os.environ.get("PYTHONPATH")])])
+            compiled = subprocess.run([sys.executable, "-c", _COMPILE, f"{scratch}/{name}-ptx", str(args.arch)],
+                                      env=dict(os.environ, PYTHONPATH=path), capture_output=True, text=True)
             if compiled.returncode != 0:
                 raise SystemExit(f"probe_spills: {name} did not compile:\n{compiled.stderr[-3000:]}")
             for kernel, paths in json.loads(compiled.stdout.strip().splitlines()[-1]).items():
                 rows.append({"variant": name, "kernel": kernel, **measure(pathlib.Path(paths[0]), ptxas, args.arch,
                                                                           version)})
     print(f"sm_{args.arch}, {ptxas} (PTX read as .version {version}):")
-    print(f"{'variant':>10} {'kernel':>18} {'registers':>10} {'stack frame':>12} {'spill stores':>13} {'spill loads':>12}")
+    print(f"{'variant':>10} {'kernel':>18} {'registers':>10} {'stack frame':>12} {'spill stores':>13} "
+          f"{'spill loads':>12}")
     for r in rows:
         print(f"{r['variant']:>10} {r['kernel']:>18} {r['registers']:>10} {r['stack_frame_bytes']:>12} "
               f"{r['spill_store_bytes']:>13} {r['spill_load_bytes']:>12}")

@@ -900,7 +900,8 @@ def _winding_walk(careful: bool, bounded: bool):
                         if wp.static(bounded):  # spent as nodes are pushed
                             if fat < 0.0:
                                 budget -= 1
-                            elif load_vec4(bvh.node_moments, 4 * child + 1)[3] > fat * centre_radius[3] * centre_radius[3]:
+                            elif (load_vec4(bvh.node_moments, 4 * child + 1)[3]
+                                  > fat * centre_radius[3] * centre_radius[3]):
                                 budget -= 1
                         nodes[count] = child
                         count += 1
