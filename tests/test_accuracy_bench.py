@@ -49,18 +49,23 @@ def test_small_accuracy_run_writes_consistent_results(tmp_path):
 def test_subdivided_bunnies_are_not_there_without_the_bunny(tmp_path, monkeypatch, capsys):
     """bunny-278k and bunny-1.1m were counted as there without the bunny they subdivide, so in a pip install
     (no data folders) the default run skipped every mesh, wrote an empty report and exited 0 (eleventh
-    outside check). Now nothing is there: the one-line refusal, exit 2, and how to add a folder."""
+    outside check). Now nothing is there: the one-line refusal, exit 2, and how to add a folder; for meshes named
+    on the command line, the first one missing (since the thirty-first outside check, a named mesh is never skipped),
+    and for the default list, all of it."""
     from badf.bench import _common
 
     monkeypatch.setattr(_common, "mesh_folders", lambda: [tmp_path])
     monkeypatch.setattr(accuracy, "mesh_folders", lambda: [tmp_path])
     parser = argparse.ArgumentParser()
     accuracy.add_arguments(parser)
-    args = parser.parse_args(["--device", "cpu", "--meshes", ",".join(accuracy.SUBDIVIDED), "--no-stability",
-                              "--workers", "1", "--out-dir", str(tmp_path)])
-    assert accuracy.run(args) == 2
+    common = ["--device", "cpu", "--no-stability", "--workers", "1", "--out-dir", str(tmp_path)]
+    assert accuracy.run(parser.parse_args(["--meshes", ",".join(accuracy.SUBDIVIDED), *common])) == 2
     err = capsys.readouterr().err
-    assert "none of --meshes bunny-278k,bunny-1.1m" in err
+    assert "--meshes bunny-278k: not a mesh file here, nor a mesh in" in err
+    assert "set BADF_SHARED_DATA to a folder that holds it" in err
+    assert accuracy.run(parser.parse_args(common)) == 2
+    err = capsys.readouterr().err
+    assert f"none of --meshes {accuracy.DEFAULT_MESHES} is a mesh file" in err
     assert "set BADF_SHARED_DATA to a folder that holds them" in err
     assert not (tmp_path / "results").exists()
 
