@@ -26,11 +26,17 @@ def mesh_folders() -> list[pathlib.Path]:
     return folders
 
 
+def names_a_path(name: str) -> bool:
+    """Whether a --mesh(es) value is a file's path by its form (a suffix, or a folder), not a shared mesh's name."""
+    given = pathlib.Path(name)
+    return bool(given.suffix) or len(given.parts) > 1
+
+
 def find_mesh(name: str) -> pathlib.Path:
     """A mesh file's path as given, or the .npz of a named mesh (e.g. "stanford-bunny"); FileNotFoundError
     naming the folders searched."""
     given = pathlib.Path(name)
-    if given.suffix or len(given.parts) > 1 or given.is_file():  # a path: its reader says what is wrong with it
+    if names_a_path(name) or given.is_file():  # a path: its reader says what is wrong with it
         return given
     for folder in mesh_folders():
         path = folder / f"{name}.npz"

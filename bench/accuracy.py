@@ -29,7 +29,8 @@ import numpy as np
 from badf.bench import _oracle as oracle
 from badf.bench import _tolerances as tol
 from badf.bench._cases import domain_of, near_surface, shared_mesh, stability_cases, surface_samples
-from badf.bench._common import bench_device_name, deform, find_mesh, mesh_folders, print_table, start_warp, timestamp
+from badf.bench._common import (bench_device_name, deform, find_mesh, mesh_folders, names_a_path, print_table,
+                                start_warp, timestamp)
 
 SHARED_MESHES = ("stanford-bunny", "armadillo-86k", "spot", "fandisk", "rocker-arm", "homer", "vlasic_samba",
                  "sumner_horse_gallop")
@@ -424,7 +425,7 @@ def run(args: argparse.Namespace) -> int:
     available = [name for name in names if _findable(name)]
     explicit = args.meshes != DEFAULT_MESHES  # names the user gave are all measured; the default's missing are skipped
     for name in [n for n in names if n not in available]:
-        if name not in SUBDIVIDED and (pathlib.Path(name).suffix or len(pathlib.Path(name).parts) > 1):
+        if name not in SUBDIVIDED and names_a_path(name):
             print(f"badf bench accuracy: {name}: no such file", file=sys.stderr)  # a path, not a name to skip
             return 2
         if explicit:

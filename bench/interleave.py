@@ -85,12 +85,16 @@ def _package_root(folder: pathlib.Path, scratch: pathlib.Path, name: str) -> pat
     return root.parent
 
 
+def variant_environment(root: pathlib.Path) -> dict[str, str]:
+    """This process's environment with `root` (_package_root) first on PYTHONPATH, so `badf` imports from it."""
+    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), *filter(None, [os.environ.get("PYTHONPATH")])]))
+
+
 class _Variant:
     def __init__(self, name: str, root: pathlib.Path, mesh: pathlib.Path, depth: int, device: str):
         """A process importing `badf` from `root` (_package_root), with the mesh registered."""
         self.name = name
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join(
-            [str(root), *filter(None, [os.environ.get("PYTHONPATH")])]))
+        env = variant_environment(root)
         self.process = subprocess.Popen([sys.executable, "-c", _WORKER, str(mesh), str(depth), device], env=env,
                                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         self.engine = self._reply()["engine"]

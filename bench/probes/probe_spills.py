@@ -26,7 +26,7 @@ import sys
 import tempfile
 
 sys.path.insert(0, __file__.rsplit("/", 3)[0])
-from badf.bench.interleave import _package_root  # noqa: E402
+from badf.bench.interleave import _package_root, variant_environment  # noqa: E402
 
 _COMPILE = r"""
 import json, sys, warp as wp
@@ -95,9 +95,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as scratch:
         for name, folder in variants.items():
             root = _package_root(pathlib.Path(folder), pathlib.Path(scratch), name)
-            path = os.pathsep.join([str(root), *filter(None, [os.environ.get("PYTHONPATH")])])
             compiled = subprocess.run([sys.executable, "-c", _COMPILE, f"{scratch}/{name}-ptx", str(args.arch)],
-                                      env=dict(os.environ, PYTHONPATH=path), capture_output=True, text=True)
+                                      env=variant_environment(root), capture_output=True, text=True)
             if compiled.returncode != 0:
                 raise SystemExit(f"probe_spills: {name} did not compile:\n{compiled.stderr[-3000:]}")
             for kernel, paths in json.loads(compiled.stdout.strip().splitlines()[-1]).items():
