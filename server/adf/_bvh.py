@@ -594,7 +594,8 @@ TREE_MISFITS = wp.constant(2)  # due, and so far off that a frame whose walk was
 def tree_fit(sums: wp.array(dtype=wp.int64)) -> int:
     """How the tree fits this frame, from Bvh.measure_spread's sums: TREE_DUE past RELINK_SPREAD times the linking
     frame's spread (or the floor), TREE_MISFITS where it also passes RERUN_SPREAD, else TREE_FITS. The frame's report
-    carries it to the host (`DistanceField._relink_due`, `_rebuild`), and the winding walks read it: one rule for both."""
+    carries it to the host (`DistanceField._relink_due`, `_rebuild`), and the winding walks read it: one rule for
+    both."""
     spread = spread_units(sums[0], sums[1])
     linked = wp.max(spread_units(sums[2], sums[3]), _RELINK_FLOOR_UNITS)
     if float(spread) <= _RELINK_SPREAD * float(linked):
@@ -856,22 +857,42 @@ def is_soup(bvh: BvhView) -> bool:
     return load_vec4(bvh.node_moments, 1)[3] > bvh.soup_area * 4.0 * wp.pi * radius * radius
 
 
-def _winding_walk(careful: bool, bounded: bool):
-    """The winding number's walk below the root, for `_winding_number_function`; returns (4 pi w, whether a near
-    triangle's float32 solid angle cancelled). `careful`: such solid angles are worked out in float64
-    (`solid_angle_careful`), and none is left cancelled; otherwise float32 throughout. `bounded`: the walk opens at
-    most `budget` internal nodes, counting only those whose area passes `fat` times their radius squared (every node
-    where fat < 0), and then sums what waits roughly; else it runs whole, has no budget at all, and ignores both."""
+def _winding_number_function(careful: bool):
+    """The winding number's walk; returns (w, whether a near triangle's float32 solid angle cancelled, so
+    that w may be wrong). `careful`: such solid angles are worked out in float64 (`solid_angle_careful`),
+    and none is left cancelled; otherwise float32 throughout, whose registers the corners' winding kernel
+    can afford."""
 
-    def walk(bvh: BvhView, p: wp.vec3, budget: int, fat: float):
+    def winding_number(bvh: BvhView, p: wp.vec3):
+        """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018).
+        In a soup (`is_soup`), or on a tree that misfits the frame (`tree_misfits`: the frame then runs again), a
+        walk opens at most `bvh.winding_budget` fat internal nodes (of more than `bvh.fat_area` times their disc's
+        area: a soup's piled triangles; a thin node, of long thin triangles however many layers deep, is opened
+        uncounted, but on a misfit tree every node counts); the nodes still waiting then take their expansion where
+        p lies beyond their radius and are left out where it lies within, and the walk counts itself in
+        `bvh.winding_cuts` (at `bvh.cut_slot`). Elsewhere a walk runs whole, however many nodes it opens. The budget
+        is spent as a node is pushed, not as it is opened, so that it costs an unbound walk nothing (the first form,
+        which marked thin nodes on the stack and counted them as they were opened, made the bunny's update 0.087 ms
+        longer on an H200)."""
         total = float(0.0)
         cancelled = bool(False)
+        if bvh.internal_count == 0:
+            a, b, c = leaf_triangle(bvh, 0)  # a single triangle, and no tree
+            if wp.static(careful):
+                total = solid_angle_careful(p, a, b, c)
+            else:
+                total, cancelled = solid_angle_checked(p, a, b, c)
+            return total * _INV_FOUR_PI, cancelled
         nodes = stack_int()
         nodes[0] = 0
         count = int(1)
-        if wp.static(not bounded):
-            budget = 1  # a whole walk's, which never runs out
-        while count > 0 and budget > 0:
+        budget = bvh.winding_budget
+        # on a misfit tree every node counts: there a calm frame's nodes gather small triangles from far apart, thin
+        # by their area, and the walks must meet the budget for the frame to run again on a tree of its own
+        misfit = tree_misfits(bvh)
+        bounded = misfit or is_soup(bvh)
+        thin_free = bounded and not misfit
+        while count > 0 and (budget > 0 or not bounded):
             count -= 1
             slot = 2 * nodes[count]
             for side in range(2):
@@ -897,71 +918,24 @@ def _winding_walk(careful: bool, bounded: bool):
                     if dist > bvh.far_field * centre_radius[3]:
                         total += _far_field(bvh, child, offset / dist, dist)
                     else:
-                        if wp.static(bounded):  # spent as nodes are pushed
-                            if fat < 0.0:
-                                budget -= 1
-                            elif (load_vec4(bvh.node_moments, 4 * child + 1)[3]
-                                  > fat * centre_radius[3] * centre_radius[3]):
+                        if bounded:  # the budget is spent as nodes are pushed, so that an unbound walk pays nothing
+                            if thin_free:
+                                area = load_vec4(bvh.node_moments, 4 * child + 1)[3]
+                                if area > bvh.fat_area * wp.pi * centre_radius[3] * centre_radius[3]:
+                                    budget -= 1
+                            else:
                                 budget -= 1
                         nodes[count] = child
                         count += 1
-        if wp.static(bounded):
-            if count > 0:  # the budget is spent (a soup of large triangles): what waits is summed roughly, or left out
-                wp.atomic_add(bvh.winding_cuts, bvh.cut_slot, 1)
-                while count > 0:
-                    count -= 1
-                    centre_radius = load_vec4(bvh.node_moments, 4 * nodes[count])
-                    offset = _xyz(centre_radius) - p
-                    dist = wp.length(offset)
-                    if dist > centre_radius[3]:
-                        total += _far_field(bvh, nodes[count], offset / dist, dist)
-        return total, cancelled
-
-    walk.__name__ = walk.__qualname__ = ("bounded" if bounded else "whole") + ("_careful" if careful else "") + "_walk"
-    return wp.func(walk)
-
-
-def _winding_number_function(careful: bool):
-    """The winding number; returns (w, whether a near triangle's float32 solid angle cancelled, so that w may be
-    wrong). `careful`: such solid angles are worked out in float64 (`solid_angle_careful`), and none is left
-    cancelled; otherwise float32 throughout, whose registers the corners' winding kernel can afford."""
-    whole_walk, bounded_walk = _winding_walk(careful, False), _winding_walk(careful, True)
-
-    def winding_number(bvh: BvhView, p: wp.vec3):
-        """Generalised winding number of p: exact solid angles near p, two-term expansions far away (Barill 2018).
-        In a soup (`is_soup`), or on a tree that misfits the frame (`tree_misfits`: the frame then runs again), a
-        walk opens at most `bvh.winding_budget` fat internal nodes (of more than `bvh.fat_area` times their disc's
-        area: a soup's piled triangles; a thin node, of long thin triangles however many layers deep, is opened
-        uncounted, but on a misfit tree every node counts, as a calm frame's nodes there gather small triangles from
-        far apart, thin by their area, and its walks must meet the budget for the frame to run again on a tree of
-        its own); the nodes still waiting then take their expansion where p lies beyond their radius and are left
-        out where it lies within, and the walk counts itself in `bvh.winding_cuts` (at `bvh.cut_slot`). Elsewhere a
-        walk runs whole, however many nodes it opens. The corners' float32 walk then runs a loop of its own with no
-        budget: the budget's count beside the walk cost the corners' kernel registers it spilled (ptxas for sm_90: 116
-        bytes of spill stores against 36 without one; counted as nodes were opened, the budget made the bunny's update
-        0.087 ms longer on an H200, and spent as they were pushed still 0.055 ms on an H100). The careful walk, inlined
-        at several places in the query and sign kernels, is one loop whose budget, where nothing binds, is one it
-        cannot spend."""
-        if bvh.internal_count == 0:
-            a, b, c = leaf_triangle(bvh, 0)  # a single triangle, and no tree
-            if wp.static(careful):
-                return solid_angle_careful(p, a, b, c) * _INV_FOUR_PI, False
-            angle, near_cancelled = solid_angle_checked(p, a, b, c)
-            return angle * _INV_FOUR_PI, near_cancelled
-        total = float(0.0)
-        cancelled = bool(False)
-        misfit = tree_misfits(bvh)
-        bound = misfit or is_soup(bvh)
-        fat = wp.where(bound and not misfit, bvh.fat_area * wp.pi, -1.0)
-        if wp.static(careful):
-            # one walk for every kind: the careful walk is called from several places in a kernel (queries, the sign
-            # kernel), each inlined, and a second walk at each spilled far more there. An unbound walk's budget is one
-            # it cannot spend: it pushes each internal node at most once, and the root not at all.
-            total, cancelled = bounded_walk(bvh, p, wp.where(bound, bvh.winding_budget, bvh.internal_count), fat)
-        elif bound:  # one call of each walk, as each call is inlined
-            total, cancelled = bounded_walk(bvh, p, bvh.winding_budget, fat)
-        else:
-            total, cancelled = whole_walk(bvh, p, 0, -1.0)
+        if count > 0:  # the budget is spent (a soup of large triangles): what waits is summed roughly, or left out
+            wp.atomic_add(bvh.winding_cuts, bvh.cut_slot, 1)
+            while count > 0:
+                count -= 1
+                centre_radius = load_vec4(bvh.node_moments, 4 * nodes[count])
+                offset = _xyz(centre_radius) - p
+                dist = wp.length(offset)
+                if dist > centre_radius[3]:
+                    total += _far_field(bvh, nodes[count], offset / dist, dist)
         return total * _INV_FOUR_PI, cancelled
 
     winding_number.__name__ = winding_number.__qualname__ = "winding_number_careful" if careful else "winding_number"

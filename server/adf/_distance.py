@@ -101,10 +101,13 @@ _Vec27 = wp.types.vector(length=27, dtype=wp.float32)
 #   - 1.70 and 1.57 ms with the searches capped at 64 registers (84 by the compiler's choice: 1.89, 1.82);
 #   - 1.73 and 1.63 ms with the signs capped at 48 (they then use 46), against 1.94 and 1.78 at 40.
 # Alone (before the second stream) the signs had been fastest at 40 and the searches indifferent to a cap.
+# Since the winding walk's budget (2026-12-06) the signs spill more at 48; on an H100 (2026-12-07 03:16, 24 paired
+# rounds, docs/results/registers-h100-0313) the bunny's update after the upload took 2.203 ms at 64 against 2.229
+# at 56 and 2.240 at 80, and 8398fa0's engine 2.168 at 64 against 2.188 at 48.
 SEARCH_BLOCK_DIM = 64
 SIGN_BLOCK_DIM = 64
 SEARCH_MAX_REGISTERS = 64
-SIGN_MAX_REGISTERS = 48
+SIGN_MAX_REGISTERS = 64
 
 
 class SearchSplit:
