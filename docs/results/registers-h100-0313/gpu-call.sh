@@ -12,14 +12,12 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | 
 date -u | tee -a "$out/gpu.txt"; git log -1 --format=%h 2>/dev/null | tee -a "$out/gpu.txt"
 case "${1:-}" in
   timing)
-    timeout 230 python3 -m badf.bench.interleave --variant pre=.ab/pre --variant pre64=.ab/pre64 --variant tree=. \
-      --mesh stanford-bunny --rounds 24 --frames 10 --out "$out/interleave-registers.json" 2>&1 | grep -v '^Module' \
-      | tee "$out/interleave-registers.log" | tail -6
+    timeout 230 python3 -m badf.bench.interleave --variant pre=.ab/pre --variant tree=. \
+      --mesh stanford-bunny --rounds 20 --frames 10 --out "$out/interleave-confirm.json" 2>&1 | grep -v '^Module' \
+      | tee "$out/interleave-confirm.log" | tail -6
     date -u
     timeout 100 python3 -m pytest -q -p no:cacheprovider -k cuda tests/test_winding_budget.py \
       2>&1 | tee "$out/pytest-cuda-budget.log" | tail -3
-    date -u
-    OUT="$out" timeout 200 bash bench/ab.sh run --seconds 140 --repeat 20 --variants "pre tree" stanford-bunny:7 2>&1 | tail -4
    ;;
   queries)
     OUT="$out" timeout 560 bash bench/ab.sh run --seconds 420 --repeat 20 --variants "pre flags tree" stanford-bunny:7 \
