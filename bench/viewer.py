@@ -21,6 +21,7 @@ page in a headless Chromium while frames stream and writes what the browser wind
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import multiprocessing
 import platform
@@ -174,12 +175,17 @@ def _load_frames(path: str) -> tuple[np.ndarray, np.ndarray]:
     return np.ascontiguousarray(frames), faces
 
 
-def _sweep(vertices: np.ndarray, axis: int, count: int) -> np.ndarray:
-    """`count` plane positions across the middle 80% of the object, there and back like a dragged slider;
-    no two in a row are the same."""
+def _slider(vertices: np.ndarray, axis: int, count: int) -> np.ndarray:
+    """Plane positions across the middle 80% of the object and back, as a dragged slider goes, for `count` calls:
+    repeated end to end, no two in a row are the same, the last and the first included."""
     low, high = float(vertices[:, axis].min()), float(vertices[:, axis].max())
     there = np.linspace(low + 0.1 * (high - low), high - 0.1 * (high - low), max(3, (count + 1) // 2))
-    return np.resize(np.concatenate([there, there[-2:0:-1]]), count)
+    return np.concatenate([there, there[-2:0:-1]])
+
+
+def _sweep(vertices: np.ndarray, axis: int, count: int) -> np.ndarray:
+    """`count` plane positions along the slider's way (`_slider`); no two in a row are the same."""
+    return np.resize(_slider(vertices, axis, count), count)
 
 
 def _timed(what: str, work: Callable[[int], object], count: int, *, reply_bytes: int = 0) -> Timing:
@@ -265,12 +271,14 @@ def _end_to_end(endpoint: str, frames: np.ndarray, positions: np.ndarray, args) 
     lifted = ViewerSettings(connect=endpoint, port=0, resolution=args.resolution, watch_without_browser=True,
                             max_slice_hz=1000.0, max_info_hz=1000.0, max_mesh_hz=1000.0)  # fmt: skip
     n = len(positions)
+    # every call moves the slider on, the warm-up's included: a call to where it already is would draw nothing
+    slider, moves = _slider(frames[0], "xyz".index(args.axis), n), itertools.count()
     with Viewer(lifted) as viewer:
         _wait(lambda: viewer.status().slices_drawn > 0, 300, "the viewer's first slice")
         viewer.set_view(axis=args.axis)
 
-        def step(i: int) -> None:
-            drawn, position = viewer.status().slices_drawn, float(positions[i % n])
+        def step(_: int) -> None:
+            drawn, position = viewer.status().slices_drawn, float(slider[next(moves) % len(slider)])
             viewer.set_view(position=position)
             _wait(lambda: viewer.status().slices_drawn > drawn and viewer.status().slice_position == position,
                   120, "a slice at the new position")  # fmt: skip
@@ -373,7 +381,7 @@ def _wait(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
     deadline = time.monotonic() + timeout_s
     while not condition():
         if time.monotonic() > deadline:
-            raise SystemExit(f"badf bench viewer: no {what} within {timeout_s:g} s")
+            raise SystemExit(f"badf bench viewer: gave up waiting for {what} after {timeout_s:g} s")
         time.sleep(0.001)
 
 
