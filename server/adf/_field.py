@@ -479,7 +479,7 @@ class DistanceField:
         self._graph_candidate = None  # key of the last planned frame run eagerly
         self.use_graphs = True
         # the fans that make an open mesh's winding numbers exact where they come near 1/2 (None: a rim too long)
-        rim = rim_fans(f) if self._sign != "none" else np.zeros((0, 3), np.int32)
+        rim = rim_fans(f, topology=self._topology) if self._sign != "none" else np.zeros((0, 3), np.int32)
         self._rim_fans = None if rim is None else len(rim)
         self._bvh = Bvh(len(f), with_moments=self._sign != "none", buffers=b, shape=shape, rim=rim)
         self._octree = Octree(self._depth, self._refine, self._halo, b)

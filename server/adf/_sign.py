@@ -398,7 +398,7 @@ def resolve_sign(requested: str, topology: Topology, solid: bool) -> str:
     return "pseudonormal" if topology.closed and solid else "winding"
 
 
-def rim_fans(faces: np.ndarray, limit: int = RIM_LIMIT) -> np.ndarray | None:
+def rim_fans(faces: np.ndarray, limit: int = RIM_LIMIT, topology: Topology | None = None) -> np.ndarray | None:
     """Triangles (vertex ids) that close the faces' boundary as a chain, so the mesh and they together bound
     nothing and their winding number is a whole number wherever it is defined (`_bvh.rim_corrected`).
 
@@ -408,7 +408,11 @@ def rim_fans(faces: np.ndarray, limit: int = RIM_LIMIT) -> np.ndarray | None:
     vertex's two edges are fanned to one centre, and their fans' solid angles cancel in every frame, even one that
     pulls the seam apart. Each rim edge s -> e gets the fan (centre, e, s), centre being its connected part's lowest
     vertex id, so the spokes cancel too (every vertex of the rim starts as many rim edges as end there).
-    An empty array for a mesh with no rim; None where the rim needs more than `limit` fans."""
+    An empty array for a mesh with no rim; None where the rim needs more than `limit` fans. With `faces`'
+    `topology`, a closed mesh whose weld joined no two of its faces' vertex ids is known to have none, with no sort.
+    """
+    if topology is not None and topology.closed and not _welds_vertices(topology, faces):
+        return np.zeros((0, 3), np.int32)  # each edge's two faces run it oppositely, between the same two ids
     f = np.asarray(faces, dtype=np.int64)
     start, end = f.reshape(-1), np.roll(f, -1, axis=1).reshape(-1)
     used = start != end  # a face with a repeated vertex: its zero-length edge bounds nothing
@@ -435,6 +439,15 @@ def rim_fans(faces: np.ndarray, limit: int = RIM_LIMIT) -> np.ndarray | None:
     fans = np.stack([centre, rim_end, rim_start], axis=1)
     fans = fans[(centre != rim_start) & (centre != rim_end)]  # a fan from an edge's own end subtends nothing
     return fans.astype(np.int32)
+
+
+def _welds_vertices(topology: Topology, faces: np.ndarray) -> bool:
+    """Whether the weld made one vertex of two or more vertex ids that `faces` name."""
+    raw = np.asarray(faces, dtype=np.int64).reshape(-1)
+    welded = topology.welded_faces.reshape(-1)
+    named = np.empty(topology.welded_count, dtype=np.int64)
+    named[welded] = raw  # one of the ids at each welded vertex (the last written)
+    return bool(np.any(named[welded] != raw))
 
 
 def _vertex_components(faces: np.ndarray, vertex_count: int) -> np.ndarray:
