@@ -11,8 +11,8 @@ import pytest
 
 import meshes
 import oracle
-from badf.server.adf._sign import (_stable_order, _welds_vertices, analyse_topology, face_components, face_volumes,
-                                 rim_fans, with_fans)
+from badf.server.adf._sign import (RIM_LIMIT, _stable_order, _welds_vertices, analyse_topology, face_components,
+                                 face_volumes, rim_fans, with_fans)
 
 
 def reference_topology(faces: np.ndarray, vertices: np.ndarray) -> dict:
@@ -54,6 +54,8 @@ def reference_topology(faces: np.ndarray, vertices: np.ndarray) -> dict:
         "inconsistent_edges": int(np.sum((counts == 2) & (orientation_sum != 0))),
         "repeated_vertex_faces": int(np.sum(repeated)),
         "seam_pairs": reference_seam_pairs(np.asarray(faces), corner_fan),
+        "rim_edges": np.stack([edge_keys // vertex_count, edge_keys % vertex_count, orientation_sum.astype(np.int64)],
+                              axis=1)[orientation_sum != 0],
     }
 
 
@@ -247,22 +249,32 @@ def test_the_rim_fans_close_the_boundary_so_winding_numbers_add_up_to_whole_numb
         assert rim_fans(faces, limit=0) is None  # past the limit: no fans, and the walk's w stays
 
 
-@pytest.mark.parametrize("name", [*CASES, "armadillo", "spot welded"])
-def test_a_closed_mesh_known_from_its_topology_has_the_rim_the_sort_finds(name):
-    """`rim_fans` given the topology skips its sort for a closed mesh whose weld joined none of its faces' vertex
-    ids. Its fans must be the sort's, bit for bit: none there, and the sort's own where a weld joined ids (spot's UV
-    seams, a cone's tip welded to a cube's corner) or the mesh is open."""
+@pytest.mark.parametrize("name", [*CASES, "armadillo", "spot welded", "horse", "bunny renamed"])
+def test_the_rim_from_the_topology_is_the_rim_the_sort_finds(name):
+    """`rim_fans` given the topology takes the edges from it, with no sort of its own, where the weld joined none of
+    the faces' vertex ids. Its fans must be the sort's, bit for bit: where a weld joined ids (spot's UV seams, a
+    cone's tip welded to a cube's corner, the awkward sphere's seam) it sorts as before."""
     if name == "armadillo":
         vertices, faces = meshes.load("armadillo-86k")
+    elif name == "horse":
+        vertices, faces = meshes.load("sumner_horse_gallop")
     elif name == "spot welded":  # spot's seams joined in the faces themselves: closed, and nothing left to weld
         vertices, faces = meshes.load("spot")
         welded = analyse_topology(faces, vertices, fans=False)
         joined = np.empty((welded.welded_count, 3), dtype=vertices.dtype)
         joined[welded.welded_faces] = vertices[faces]
         vertices, faces = joined, welded.welded_faces
+    elif name == "bunny renamed":  # ids shuffled against the positions' order, so the renaming turns edges round
+        vertices, faces = meshes.load("stanford-bunny")
+        shuffle = np.random.default_rng(5).permutation(len(vertices))
+        vertices, faces = vertices[np.argsort(shuffle)], shuffle[faces]
     else:
         vertices, faces = (np.asarray(a) for a in CASES[name]())
     topology = analyse_topology(faces, vertices, fans=False)
-    np.testing.assert_array_equal(rim_fans(faces, topology=topology), rim_fans(faces))
-    skipped = topology.closed and not _welds_vertices(topology, faces)
-    assert skipped == (name in ("parts apart", "armadillo", "spot welded"))
+    renamed = not _welds_vertices(topology, faces)
+    assert renamed == (name not in ("spot (UV seams)", "parts touching at a point", "awkward sphere"))
+    for limit in (0, 10, RIM_LIMIT):
+        by_topology, by_sort = rim_fans(faces, limit, topology=topology), rim_fans(faces, limit)
+        assert (by_topology is None) == (by_sort is None)
+        if by_sort is not None:
+            np.testing.assert_array_equal(by_topology, by_sort)

@@ -92,6 +92,10 @@ class Topology:
     # (K, 2) int32: pairs of distinct vertex ids that the weld joined within one fan (a seam, or a soup's shared
     # corners); the pseudonormals hold only while each pair still coincides (Pseudonormals.choose_frame_method)
     seam_pairs: np.ndarray
+    # (R, 3) int64: the edges whose faces' uses do not cancel, as (lower welded id, higher, net use: +1 for each face
+    # running the edge from the lower to the higher, -1 for each the other way), in edge order; the rim's source where
+    # the weld joined no two of the faces' vertex ids (`rim_fans`)
+    rim_edges: np.ndarray
 
     @property
     def has_fans(self) -> bool:
@@ -141,7 +145,10 @@ def analyse_topology(faces: np.ndarray, vertices: np.ndarray, *, fans: bool = Tr
     face_edge[usable] = inverse.astype(np.int32)
     # orientation: +1 where the face runs lo -> hi; a consistent two-face edge sums to zero
     direction = np.where(start < end, 1, -1)[usable]
-    orientation_sum = np.bincount(inverse, weights=direction, minlength=edge_count)
+    orientation_sum = np.bincount(inverse, weights=direction, minlength=edge_count).astype(np.int64)
+    rim = np.flatnonzero(orientation_sum)
+    edge_key = np.empty(edge_count, dtype=np.int64)
+    edge_key[inverse] = keys[usable]
     two = counts == 2
     face_of_slot = np.repeat(np.arange(m), 3).reshape(m, 3)[usable]
     edge_face_start = np.zeros(edge_count + 2, dtype=np.int32)
@@ -163,6 +170,8 @@ def analyse_topology(faces: np.ndarray, vertices: np.ndarray, *, fans: bool = Tr
         inconsistent_edges=int(np.sum(two & (orientation_sum != 0))),
         repeated_vertex_faces=int(np.sum(repeated)),
         seam_pairs=np.zeros((0, 2), dtype=np.int32),
+        rim_edges=np.stack([edge_key[rim] // vertex_count, edge_key[rim] % vertex_count, orientation_sum[rim]],
+                           axis=1),
     )
     return _add_fans(topology, faces, usable, inverse[order], order) if fans else topology
 
@@ -408,30 +417,23 @@ def rim_fans(faces: np.ndarray, limit: int = RIM_LIMIT, topology: Topology | Non
     vertex's two edges are fanned to one centre, and their fans' solid angles cancel in every frame, even one that
     pulls the seam apart. Each rim edge s -> e gets the fan (centre, e, s), centre being its connected part's lowest
     vertex id, so the spokes cancel too (every vertex of the rim starts as many rim edges as end there).
-    An empty array for a mesh with no rim; None where the rim needs more than `limit` fans. With `faces`'
-    `topology`, a closed mesh whose weld joined no two of its faces' vertex ids is known to have none, with no sort.
-    """
-    if topology is not None and topology.closed and not _welds_vertices(topology, faces):
-        return np.zeros((0, 3), np.int32)  # each edge's two faces run it oppositely, between the same two ids
+    An empty array for a mesh with no rim; None where the rim needs more than `limit` fans. Given `faces`'
+    `topology`, where its weld joined no two of the faces' vertex ids, the edges come from it with no sort of their
+    own (the same fans, bit for bit)."""
     f = np.asarray(faces, dtype=np.int64)
-    start, end = f.reshape(-1), np.roll(f, -1, axis=1).reshape(-1)
-    used = start != end  # a face with a repeated vertex: its zero-length edge bounds nothing
-    start, end = start[used], end[used]
     count = int(f.max()) + 1 if f.size else 1
-    low, high = np.minimum(start, end), np.maximum(start, end)
-    edges, inverse = np.unique(low * count + high, return_inverse=True)
-    net = np.zeros(len(edges), np.int64)
-    np.add.at(net, inverse.reshape(-1), np.where(start < end, 1, -1))
-    left = net != 0
-    copies = np.abs(net[left])
+    if topology is not None and not _welds_vertices(topology, faces):
+        low, high, net = _rim_edges_renamed(topology, f, count)
+    else:
+        low, high, net = _rim_edges_sorted(f, count)
+    copies = np.abs(net)
     total = int(copies.sum())
     if total > limit:
         return None
     if total == 0:
         return np.zeros((0, 3), np.int32)
-    low, high = edges[left] // count, edges[left] % count
-    rim_start = np.repeat(np.where(net[left] > 0, low, high), copies)
-    rim_end = np.repeat(np.where(net[left] > 0, high, low), copies)
+    rim_start = np.repeat(np.where(net > 0, low, high), copies)
+    rim_end = np.repeat(np.where(net > 0, high, low), copies)
     ids, compact = np.unique(np.concatenate([rim_start, rim_end]), return_inverse=True)
     compact = compact.reshape(-1)
     part = _connected(compact[:total], compact[total:], len(ids))
@@ -439,6 +441,33 @@ def rim_fans(faces: np.ndarray, limit: int = RIM_LIMIT, topology: Topology | Non
     fans = np.stack([centre, rim_end, rim_start], axis=1)
     fans = fans[(centre != rim_start) & (centre != rim_end)]  # a fan from an edge's own end subtends nothing
     return fans.astype(np.int32)
+
+
+def _rim_edges_sorted(f: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(lower id, higher id, net use) of each edge of faces f (vertex ids below `count`) whose uses do not cancel,
+    in the order of their keys lower * count + higher."""
+    start, end = f.reshape(-1), np.roll(f, -1, axis=1).reshape(-1)
+    used = start != end  # a face with a repeated vertex: its zero-length edge bounds nothing
+    start, end = start[used], end[used]
+    low, high = np.minimum(start, end), np.maximum(start, end)
+    edges, inverse = np.unique(low * count + high, return_inverse=True)
+    net = np.zeros(len(edges), np.int64)
+    np.add.at(net, inverse.reshape(-1), np.where(start < end, 1, -1))
+    left = net != 0
+    return edges[left] // count, edges[left] % count, net[left]
+
+
+def _rim_edges_renamed(topology: Topology, f: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What `_rim_edges_sorted` finds, from the topology's rim edges, for faces f whose weld only renamed their
+    vertex ids one to one: the same edges and net uses, each turned round where the renaming reversed its ends'
+    order. (A face the weld finds naming a vertex twice names it twice here too; its uses cancel either way.)"""
+    named = np.empty(topology.welded_count, dtype=np.int64)
+    named[topology.welded_faces.reshape(-1)] = f.reshape(-1)
+    lower, higher, net = (named[topology.rim_edges[:, 0]], named[topology.rim_edges[:, 1]], topology.rim_edges[:, 2])
+    net = np.where(lower < higher, net, -net)
+    low, high = np.minimum(lower, higher), np.maximum(lower, higher)
+    order = np.argsort(low * count + high, kind="stable")
+    return low[order], high[order], net[order]
 
 
 def _welds_vertices(topology: Topology, faces: np.ndarray) -> bool:
