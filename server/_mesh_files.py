@@ -215,4 +215,18 @@ def _read_with_trimesh(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
         raise MeshFileError(f"{path}: trimesh cannot read it ({type(error).__name__}: {error})") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise MeshFileError(f"{path}: holds no triangles")
-    return np.asarray(loaded.vertices), np.asarray(loaded.faces)
+    vertices, faces = np.asarray(loaded.vertices), np.asarray(loaded.faces)
+    if path.suffix.lower() == ".stl":
+        vertices, faces = _shared_corners(vertices, faces)
+    return vertices, faces
+
+
+def _shared_corners(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An STL file gives each triangle corners of its own. Corners at the same position become one vertex (in the
+    order they first come), as the surface meant: an open surface's rim is then its holes' edges, which the winding
+    numbers' correction near 1/2 can close, not every triangle's three (docs/engine.md, "Fast winding numbers")."""
+    _, first, shared = np.unique(vertices, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")
+    rank = np.empty(len(order), dtype=np.int64)
+    rank[order] = np.arange(len(order))
+    return vertices[first[order]], rank[shared.reshape(-1)][faces]

@@ -10,6 +10,7 @@ import trimesh
 
 from badf.bench._common import find_mesh
 from badf.server._mesh_files import MeshFileError, read_frames, read_mesh
+from badf.server.adf._sign import rim_fans
 
 
 @pytest.fixture
@@ -27,6 +28,27 @@ def test_any_file_trimesh_reads_gives_the_same_triangles(box, tmp_path, suffix: 
     # .stl stores each triangle's corners on their own: compare the triangles, not the indices
     np.testing.assert_allclose(np.sort(vertices[faces].reshape(-1, 3), axis=0),
                                np.sort(box.vertices[box.faces].reshape(-1, 3), axis=0), atol=1e-6)
+
+
+@pytest.mark.parametrize("encoding", ["binary", "ascii"])
+def test_an_stl_surface_shares_its_corners_so_its_rim_is_its_holes(tmp_path, encoding: str) -> None:
+    """STL gives each triangle corners of its own. Read as they stand, an open surface's rim would be every
+    triangle's edges (past RIM_LIMIT: no correction of its winding numbers near 1/2); corners at one position are
+    one vertex, in the order they first come, so the rim is the holes' edges, as for the same surface from an OBJ."""
+    sphere = trimesh.creation.icosphere(3)
+    faces = sphere.faces[sphere.triangles_center[:, 2] < 0.6]  # a cap cut off: one hole
+    used = np.unique(faces)
+    soup = trimesh.Trimesh(sphere.vertices[faces].reshape(-1, 3), np.arange(faces.size).reshape(-1, 3), process=False)
+    path = tmp_path / "cut.stl"
+    path.write_bytes(trimesh.exchange.stl.export_stl(soup) if encoding == "binary"
+                     else trimesh.exchange.stl.export_stl_ascii(soup).encode())
+    vertices, read = read_mesh(path)
+    assert len(vertices) == len(used) and read.shape == faces.shape
+    np.testing.assert_allclose(vertices[read], sphere.vertices[faces], atol=1e-6)  # the same triangles, in order
+    first = np.unique(read.reshape(-1), return_index=True)[1]
+    assert np.all(np.diff(first) > 0)  # vertices numbered in the order their first corner comes
+    fans = rim_fans(read)
+    assert fans is not None and len(fans) == len(rim_fans(np.searchsorted(used, faces)))
 
 
 def test_an_npz_mesh_and_an_npz_sequence(box, tmp_path) -> None:
