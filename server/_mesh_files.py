@@ -225,8 +225,12 @@ def _shared_corners(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray
     """An STL file gives each triangle corners of its own. Corners at the same position become one vertex (in the
     order they first come), as the surface meant: an open surface's rim is then its holes' edges, which the winding
     numbers' correction near 1/2 can close, not every triangle's three (docs/engine.md, "Fast winding numbers")."""
-    _, first, shared = np.unique(vertices, axis=0, return_index=True, return_inverse=True)
+    from badf.server.adf._sign import weld  # the engine's own weld, so its analysis finds nothing more to join
+
+    welded, count = weld(vertices)
+    first = np.full(count, len(vertices), dtype=np.int64)
+    np.minimum.at(first, welded, np.arange(len(vertices)))
     order = np.argsort(first, kind="stable")
-    rank = np.empty(len(order), dtype=np.int64)
-    rank[order] = np.arange(len(order))
-    return vertices[first[order]], rank[shared.reshape(-1)][faces]
+    rank = np.empty(count, dtype=np.int64)
+    rank[order] = np.arange(count)
+    return vertices[first[order]], rank[welded][faces]

@@ -130,7 +130,7 @@ def analyse_topology(faces: np.ndarray, vertices: np.ndarray, *, fans: bool = Tr
     pseudonormal is that part's alone, and stays right when the parts move apart in later frames.
     """
     m = len(faces)
-    welded_id, vertex_count = _weld(vertices)
+    welded_id, vertex_count = weld(vertices)
     f = welded_id[faces].astype(np.int64)
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
     start = f  # directed edges ab, bc, ca of every face
@@ -270,7 +270,7 @@ def _groups(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return order, inverse, np.diff(np.append(np.flatnonzero(new), len(values)))
 
 
-def _weld(vertices: np.ndarray) -> tuple[np.ndarray, int]:
+def weld(vertices: np.ndarray) -> tuple[np.ndarray, int]:
     """(id of each vertex's position, number of distinct positions); ids follow the positions' lexicographic
     (x, y, z) order. -0.0 and 0.0 compare equal, so they weld."""
     v = vertices
@@ -422,10 +422,8 @@ def rim_fans(faces: np.ndarray, limit: int = RIM_LIMIT, topology: Topology | Non
     own (the same fans, bit for bit)."""
     f = np.asarray(faces, dtype=np.int64)
     count = int(f.max()) + 1 if f.size else 1
-    if topology is not None and not _welds_vertices(topology, faces):
-        low, high, net = _rim_edges_renamed(topology, f, count)
-    else:
-        low, high, net = _rim_edges_sorted(f, count)
+    ids = None if topology is None else ids_by_weld(topology, f)
+    low, high, net = _rim_edges_sorted(f, count) if ids is None else _rim_edges_renamed(topology, ids, count)
     copies = np.abs(net)
     total = int(copies.sum())
     if total > limit:
@@ -457,26 +455,25 @@ def _rim_edges_sorted(f: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray
     return edges[left] // count, edges[left] % count, net[left]
 
 
-def _rim_edges_renamed(topology: Topology, f: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """What `_rim_edges_sorted` finds, from the topology's rim edges, for faces f whose weld only renamed their
-    vertex ids one to one: the same edges and net uses, each turned round where the renaming reversed its ends'
-    order. (A face the weld finds naming a vertex twice names it twice here too; its uses cancel either way.)"""
-    named = np.empty(topology.welded_count, dtype=np.int64)
-    named[topology.welded_faces.reshape(-1)] = f.reshape(-1)
-    lower, higher, net = (named[topology.rim_edges[:, 0]], named[topology.rim_edges[:, 1]], topology.rim_edges[:, 2])
+def _rim_edges_renamed(topology: Topology, ids: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What `_rim_edges_sorted` finds, from the topology's rim edges, for faces whose weld only renamed their vertex
+    ids one to one (`ids_by_weld`): the same edges and net uses, each turned round where the renaming reversed its
+    ends' order. (A face the weld finds naming a vertex twice names it twice here too; its uses cancel either way.)"""
+    lower, higher, net = (ids[topology.rim_edges[:, 0]], ids[topology.rim_edges[:, 1]], topology.rim_edges[:, 2])
     net = np.where(lower < higher, net, -net)
     low, high = np.minimum(lower, higher), np.maximum(lower, higher)
     order = np.argsort(low * count + high, kind="stable")
     return low[order], high[order], net[order]
 
 
-def _welds_vertices(topology: Topology, faces: np.ndarray) -> bool:
-    """Whether the weld made one vertex of two or more vertex ids that `faces` name."""
+def ids_by_weld(topology: Topology, faces: np.ndarray) -> np.ndarray | None:
+    """The vertex id that `faces` name at each welded vertex of their `topology`; None where the weld made one
+    vertex of two or more of their ids."""
     raw = np.asarray(faces, dtype=np.int64).reshape(-1)
     welded = topology.welded_faces.reshape(-1)
-    named = np.empty(topology.welded_count, dtype=np.int64)
-    named[welded] = raw  # one of the ids at each welded vertex (the last written)
-    return bool(np.any(named[welded] != raw))
+    ids = np.empty(topology.welded_count, dtype=np.int64)
+    ids[welded] = raw  # one of the ids at each welded vertex (the last written)
+    return None if np.any(ids[welded] != raw) else ids
 
 
 def _vertex_components(faces: np.ndarray, vertex_count: int) -> np.ndarray:
