@@ -563,7 +563,8 @@ class RemoteObject:
         milliseconds before that is lost without a word), and ObjectNotFoundError after `delete()` on this
         handle. A frame streamed to an object that another client deleted is dropped by the router unseen:
         `update()` waits for the worker's answer instead. So is a frame the worker refuses (one whose used
-        vertices span less than 1e-40), which still becomes the vertices `reregister()` sends; a wrong shape,
+        vertices span more than 0 but less than 1e-40; a frame collapsed to one point keeps the last frame's
+        cube), which still becomes the vertices `reregister()` sends; a wrong shape,
         NaN, Inf and coordinates past +-1e18 are refused here, before the frame is kept."""
         if self._deleted:
             raise ObjectNotFoundError(f"{self.name!r} was deleted through this handle; reregister() serves it again")
