@@ -79,6 +79,33 @@ def test_exact_queries_match_oracle(device, name):
         assert np.array_equal((result.distance < 0)[clear], inside[clear])
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_queries_through_staged_host_buffers_answer_as_direct_copies(device, dtype, monkeypatch):
+    """On CUDA a batch of at most STAGED_POINTS travels through pinned host buffers that the next batch reuses; on
+    the CPU they are turned on here as plain ones. Batches that grow, shrink, pass the limit (copied directly) and
+    a trim between them give the same bits as an object that copies directly, and no answer is overwritten by the
+    batch after it."""
+    monkeypatch.setattr("badf.server.adf._distance.STAGED_POINTS", 200)
+    vertices, faces = meshes.load("spot")
+    rng = np.random.default_rng(4)
+    staged, direct = (DistanceField(vertices, faces, depth=4, device=device) for _ in range(2))
+    staged._points.staging, direct._points.staging = True, False
+    points = query_points(staged, vertices, faces, rng).astype(dtype)
+    answers = []
+    for count in (50, 200, 120, len(points), 180):
+        if count == 120:
+            staged.trim()
+        for mode in ("adf", "exact"):
+            got = staged.query(points[:count], mode=mode, outputs=ALL_OUTPUTS)
+            want = direct.query(points[:count], mode=mode, outputs=ALL_OUTPUTS)
+            for name in ALL_OUTPUTS:
+                assert np.array_equal(getattr(got, name), getattr(want, name)), (count, mode, name)
+            answers.append((got, want))
+    for got, want in answers:  # later batches left the earlier answers alone
+        assert all(np.array_equal(getattr(got, name), getattr(want, name)) for name in ALL_OUTPUTS)
+    assert len(points) > 200 and staged._points._staged  # both paths ran
+
+
 @pytest.mark.parametrize("shape", ["slab", "cylinder"])
 def test_exact_queries_hold_beside_long_narrow_triangles(device, shape):
     """A slab 2e-4 thick (its sides are two triangles 2e-4 of their length wide) and a cylinder of 2,048

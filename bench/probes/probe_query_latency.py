@@ -27,6 +27,7 @@ parser.add_argument("--points", type=int, default=65_536)
 parser.add_argument("--repeat", type=int, default=30)
 parser.add_argument("--depth", type=int, default=7)
 parser.add_argument("--out")
+parser.add_argument("--profile", action="store_true", help="also print cProfile's top functions of ADF queries")
 args = parser.parse_args()
 
 wp.init()
@@ -125,6 +126,32 @@ for mode in ("adf", "exact"):
         print("   host:   " + ", ".join(f"{k} {v:.3f}" for k, v in row["host_ms"].items()))
         if row["device_ms"]:
             print("   device: " + ", ".join(f"{k} {v:.3f}" for k, v in row["device_ms"].items()))
+# the ADF kernel on the points it answers by interpolation alone, and on those it answers exactly (where its
+# distance equals exact mode's to the bit: an open mesh's points across an opening, a vanished gradient, ...)
+interpolated = field.query(points).distance != field.query(points, mode="exact").distance
+split = {}
+for name, subset in (("interpolated", points[interpolated]), ("exact fallbacks", points[~interpolated])):
+    kernel_times = []
+    for k in range(args.repeat + 3):
+        events.clear()
+        field.query(subset)
+        times = dict((n, e) for n, e in events)
+        if device.is_cuda and k >= 3:
+            kernel_times.append(wp.get_event_elapsed_time(times["kernel"], times["after kernel"]))
+    split[name] = {"points": len(subset), "kernel_ms": statistics.median(kernel_times) if kernel_times else None}
+    print(f"ADF kernel on the {len(subset)} points {name}: {split[name]['kernel_ms']} ms")
+if args.profile:
+    import cProfile
+    import pstats
+    for outputs in (("distance",), ("distance", "closest_point", "normal", "face")):
+        _distance.wp.copy, _distance.launch_per_item, _distance.wp.synchronize_device = real_copy, real_launch, real_sync
+        profile = cProfile.Profile()
+        profile.enable()
+        for _ in range(args.repeat):
+            field.query(points, outputs=outputs)
+        profile.disable()
+        print(f"cProfile, {args.repeat} ADF queries of {'+'.join(outputs)}:")
+        pstats.Stats(profile).sort_stats("cumulative").print_stats(30)
 if args.out:
     with open(args.out, "w") as f:
-        json.dump({"device": str(device), "name": device.name, "points": args.points, "rows": rows}, f, indent=1)
+        json.dump({"device": str(device), "name": device.name, "points": args.points, "rows": rows, "adf_kernel_split": split}, f, indent=1)

@@ -52,7 +52,7 @@ from badf.server.adf._sign import (
     wound_side,
 )
 from badf.server.adf._threads import COUNTS_ROOM, launch_per_item
-from badf.server.adf._tolerances import SURFACE_SNAP
+from badf.server.adf._tolerances import STAGED_POINTS, SURFACE_SNAP
 
 # No fused multiply-adds in this module's kernels (nor in the point queries'): with them, the compiler may
 # round the same triangle arithmetic differently where it is inlined at two places, so a seed's distance
@@ -425,11 +425,31 @@ class CornerField:
 
 
 class PointQuery:
-    """Device buffers for batches of query points, reused from batch to batch."""
+    """Device buffers for batches of query points, reused from batch to batch, and on CUDA pinned host twins of
+    them for batches of at most STAGED_POINTS."""
 
     def __init__(self, buffers: DeviceBuffers):
         self.buffers = buffers
         self.device = buffers.device
+        self.staging = self.device.is_cuda  # (tests turn it on for the CPU, where the twins are plain host arrays)
+        self._staged: dict[str, wp.array] = {}
+
+    def _stage(self, name: str, count: int, dtype) -> wp.array | None:
+        """A pinned host array of at least `count` elements for a batch on CUDA of at most STAGED_POINTS, grown
+        with headroom; None on the CPU and for larger batches. Reused by the next batch, which starts once this
+        one's copies are done (`run` waits for the device)."""
+        if not self.staging or count > STAGED_POINTS:
+            return None
+        arr = self._staged.get(name)
+        if arr is None or arr.shape[0] < count:
+            size = count if arr is None else min(STAGED_POINTS, max(count, int(arr.shape[0] * 1.5)))
+            arr = wp.empty(size, dtype=dtype, device="cpu", pinned=self.device.is_cuda)
+            self._staged[name] = arr
+        return arr
+
+    def give_back(self) -> None:
+        """Free the pinned host buffers (a trim); the next batch makes them again."""
+        self._staged.clear()
 
     def run(self, points: np.ndarray, offset: np.ndarray, scale: float, *, exact: bool, outputs: int,
             octree: OctreeView, corner_value: wp.array, corner_leaf: wp.array, bvh: BvhView, sign: SignView,
@@ -445,7 +465,12 @@ class PointQuery:
         normal = b.ensure("query.normal", n if outputs & OUT_NORMAL else 1, wp.vec3, headroom=True)
         face = b.ensure("query.face", n if outputs & OUT_FACE else 1, wp.int32, headroom=True)
         device_points = b.ensure("query.points", n, wp.vec3, headroom=True)
-        wp.copy(device_points, wp.array(points, dtype=wp.vec3, device="cpu", copy=False), count=n)
+        stage = self._stage("points", n, wp.vec3)
+        if stage is None:
+            wp.copy(device_points, wp.array(points, dtype=wp.vec3, device="cpu", copy=False), count=n)
+        else:
+            stage.numpy()[:n] = points  # float64 points rounded to float32 here, as Warp's own conversion does
+            wp.copy(device_points, stage, count=n)
         # shared out over the CPU's cores by points: the points and the outputs asked for (the others hold one slot)
         asked = [arr for arr, bit in ((distance, OUT_DISTANCE), (closest, OUT_CLOSEST), (normal, OUT_NORMAL),
                                       (face, OUT_FACE)) if outputs & bit]
@@ -460,6 +485,7 @@ class PointQuery:
             sliced=(device_points, *asked),
             device=self.device,
         )
+        staged = []
         for name, bit, arr, dtype in (
             ("distance", OUT_DISTANCE, distance, wp.float32),
             ("closest_point", OUT_CLOSEST, closest, wp.vec3),
@@ -467,9 +493,15 @@ class PointQuery:
             ("face", OUT_FACE, face, wp.int32),
         ):
             if outputs & bit:
-                host = wp.array(results[name][start : start + n], dtype=dtype, device="cpu", copy=False)
+                host = self._stage(name, n, dtype)
+                if host is None:
+                    host = wp.array(results[name][start : start + n], dtype=dtype, device="cpu", copy=False)
+                else:
+                    staged.append((name, host))
                 wp.copy(host, arr, count=n)
         wp.synchronize_device(self.device)
+        for name, host in staged:
+            results[name][start : start + n] = host.numpy()[:n]
 
 
 @wp.func

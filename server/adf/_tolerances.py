@@ -168,6 +168,10 @@ RIGID_SAMPLE = 64
 # Points are sent to the device in batches of at most this many, so memory stays bounded.
 QUERY_CHUNK = 1 << 20
 
+# On CUDA, a batch of at most this many points travels through pinned host buffers, whose copies run at the bus's
+# rate (a pageable copy is staged by the driver); larger batches go pageable, so an object pins at most 2.9 MB.
+STAGED_POINTS = 1 << 16
+
 # Size limits checked at the boundary (vertex and face indices stay within int32 arithmetic).
 MAX_VERTICES = 1 << 26
 MAX_FACES = 1 << 26
