@@ -225,12 +225,14 @@ class Client:
         return RemoteObject(self, info, vertices=None, faces=None)
 
     def objects(self, *, timeout: float | None = None) -> list[ObjectInfo]:
-        """Every object of every worker in the namespace, sorted by name."""
+        """Every object of every worker in the namespace, sorted by name: of the workers that answer, so empty
+        where none does, whether none runs or this client is cut off from them (`register` raises then)."""
         infos = self._ask_all(self.keys.every_object_info, InfoRequest(), ObjectInfo, timeout=timeout)
         return sorted(infos, key=lambda info: info.name)
 
     def workers(self, *, timeout: float | None = None) -> list[WorkerInfo]:
-        """Every worker in the namespace, with its load, sorted by id."""
+        """Every worker in the namespace, with its load, sorted by id: those that answer, so empty where none
+        does, whether none runs or this client is cut off from them."""
         infos = self._ask_all(self.keys.every_worker_info, InfoRequest(), WorkerInfo, timeout=timeout)
         return sorted(infos, key=lambda info: info.worker)
 
