@@ -79,6 +79,7 @@ from badf.server.adf._tolerances import (
     REDOMAIN_KEEP_SIDE,
     REDOMAIN_MIN_FILL,
     REDOMAIN_REFIT_ROOM,
+    RIM_LIMIT,
     RIGID_TOLERANCE,
     SOLID_BESIDE_SAMPLE,
     SOLID_WATCH_SAMPLE,
@@ -481,6 +482,11 @@ class DistanceField:
         # the fans that make an open mesh's winding numbers exact where they come near 1/2 (None: a rim too long)
         rim = rim_fans(f, topology=self._topology) if self._sign != "none" else np.zeros((0, 3), np.int32)
         self._rim_fans = None if rim is None else len(rim)
+        if rim is None and self._sign == "winding":
+            log.warning("the surface's rim (its faces' edges that no other face runs the other way) needs more than %d "
+                        "fans, so winding numbers near 1/2, about its openings, keep the walk's estimate and such "
+                        "points may read the wrong side. A mesh whose faces share no vertex ids (a triangle soup, as "
+                        "STL stores) has every edge on its rim: merge its coincident vertices first", RIM_LIMIT)
         self._bvh = Bvh(len(f), with_moments=self._sign != "none", buffers=b, shape=shape, rim=rim)
         self._octree = Octree(self._depth, self._refine, self._halo, b)
         self._octree.surface_area = area
