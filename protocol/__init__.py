@@ -76,7 +76,7 @@ from badf.protocol._messages import (
     decode,
     encode,
 )
-from badf.protocol._session import DEFAULT_ENDPOINT, ZenohMode, zenoh_config, zenoh_message
+from badf.protocol._session import DEFAULT_ENDPOINT, ZenohMode, config_file_names, zenoh_config, zenoh_message
 from badf.protocol._wire import PROTOCOL_VERSION
 
 __all__ = [
@@ -155,6 +155,7 @@ __all__ = [
     "decode",
     "encode",
     "error_for_code",
+    "config_file_names",
     "zenoh_config",
     "zenoh_message",
 ]

@@ -26,11 +26,12 @@ def zenoh_config(
 ) -> zenoh.Config:
     """A Zenoh configuration for a badf worker or client.
 
-    Without `config_file`, it starts from Zenoh's defaults with multicast scouting off (only the endpoints
-    given are used) and shared memory off: Zenoh's SHM transport was seen to lose queries and replies on a
-    starved CPU (eclipse-zenoh/zenoh#2628). With `config_file` (JSON5: TLS, authentication, access
-    control), that file is the base and is left as it is. In both cases `mode` and the endpoints given here
-    override the base: `listen` None keeps the base's (Zenoh's default for a router is every interface's
+    It starts from Zenoh's defaults with multicast scouting off (only the endpoints given are used) and shared
+    memory off: Zenoh's SHM transport was seen to lose queries and replies on a starved CPU
+    (eclipse-zenoh/zenoh#2628). With `config_file` (JSON5: TLS, authentication, access control), that file is
+    the base, and these two stay off unless its text names them ("scouting", "shared_memory"): a file that only
+    sets the lease turned both on (thirty-sixth outside check). In both cases `mode` and the endpoints given
+    here override the base: `listen` None keeps the base's (Zenoh's default for a router is every interface's
     port 7447, for a peer a random port), while an empty `listen` means listen nowhere. `connect_timeout_s`
     bounds how long opening the session waits for `connect`.
 
@@ -39,13 +40,15 @@ def zenoh_config(
     """
     if config_file is None:
         config = zenoh.Config()
-        config.insert_json5("scouting/multicast/enabled", "false")
-        config.insert_json5("transport/shared_memory/enabled", "false")
     else:
         try:
             config = zenoh.Config.from_file(config_file)
         except zenoh.ZError as error:
             raise InvalidOptionError(f"cannot use the Zenoh config file {config_file!r}: {zenoh_message(error)}") from None
+    if not config_file_names(config_file, "scouting"):
+        config.insert_json5("scouting/multicast/enabled", "false")
+    if not config_file_names(config_file, "shared_memory"):
+        config.insert_json5("transport/shared_memory/enabled", "false")
     config.insert_json5("mode", json.dumps(mode))
     if listen is not None:
         config.insert_json5("listen/endpoints", _endpoints_json(listen, "listen"))
@@ -54,6 +57,18 @@ def zenoh_config(
     if connect_timeout_s is not None:
         config.insert_json5("connect/timeout_ms", json.dumps(max(1, round(connect_timeout_s * 1000))))
     return config
+
+
+def config_file_names(config_file: str | None, word: str) -> bool:
+    """Whether a Zenoh config file's text names `word` (a section or key, or in a comment); False without a file.
+    Zenoh's parsed config cannot tell a value the file set from its own default."""
+    if config_file is None:
+        return False
+    try:
+        with open(config_file, encoding="utf-8", errors="replace") as file:
+            return word in file.read()
+    except OSError as error:
+        raise InvalidOptionError(f"cannot read the Zenoh config file {config_file!r}: {error}") from None
 
 
 def _endpoints_json(endpoints: Sequence[str], role: str) -> str:

@@ -32,8 +32,8 @@ from badf.server._worker import (
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--listen", action="append", metavar="ENDPOINT",
-        help=f"Zenoh endpoint to listen on, repeatable (default without --config: {DEFAULT_ENDPOINT}, "
-        "or no endpoint when --connect joins other routers)",
+        help=f"Zenoh endpoint to listen on, repeatable (default: {DEFAULT_ENDPOINT}, or no endpoint when "
+        "--connect joins other routers; a --config file that names listen gives its own)",
     )  # fmt: skip
     parser.add_argument(
         "--connect", action="append", default=[], metavar="ENDPOINT",

@@ -11,15 +11,16 @@ from typing import Sequence
 
 import zenoh
 
-from badf.protocol import DEFAULT_ENDPOINT, KeySpace, zenoh_config
+from badf.protocol import DEFAULT_ENDPOINT, KeySpace, config_file_names, zenoh_config
 
 log = logging.getLogger("badf.server")
 
 
 @dataclass(frozen=True)
 class RouterSettings:
-    """Where a router listens and which routers it joins. `listen` None means: with a config file, the
-    file's endpoints; without one, tcp/127.0.0.1:7447 when it connects to nothing, else no endpoint."""
+    """Where a router listens and which routers it joins. `listen` None means: with a config file whose text
+    names `listen`, the file's endpoints; otherwise tcp/127.0.0.1:7447 when it connects to nothing, else no
+    endpoint."""
 
     namespace: str = "badf"
     listen: tuple[str, ...] | None = None
@@ -34,7 +35,7 @@ class RouterSettings:
         """The router's configuration; `extra_listen` endpoints are added to the others (the private
         loopback endpoint of the workers that `badf serve --gpus` starts)."""
         listen = self.listen
-        if listen is None and self.config_file is None:
+        if listen is None and not config_file_names(self.config_file, "listen"):
             listen = () if self.connect else (DEFAULT_ENDPOINT,)
         config = zenoh_config(mode="router", listen=listen, connect=self.connect, config_file=self.config_file)
         if extra_listen:

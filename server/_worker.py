@@ -39,6 +39,7 @@ from badf.protocol import (
     WorkerUnavailableError,
     ZenohMode,
     check_name,
+    config_file_names,
     decode,
     zenoh_config,
 )
@@ -113,7 +114,7 @@ class WorkerSettings:
 
     def zenoh_config(self) -> zenoh.Config:
         listen = self.listen
-        if listen is None and self.config_file is None:
+        if listen is None and not config_file_names(self.config_file, "listen"):
             listen = (DEFAULT_ENDPOINT,) if self.mode == "router" and not self.connect else ()
         return zenoh_config(mode=self.mode, listen=listen, connect=self.connect, config_file=self.config_file)
 

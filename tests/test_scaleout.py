@@ -58,6 +58,33 @@ def test_a_worker_that_joins_a_router_takes_no_port_unless_told() -> None:
     assert own.zenoh_config().get_json("listen/endpoints") == '["tcp/0.0.0.0:7448"]'
 
 
+def test_a_config_file_that_leaves_out_listening_scouting_and_shared_memory_gets_badfs_defaults(tmp_path) -> None:
+    """A config file that only sets the lease (as docs/scaleout.md advises, on both sides) made a worker given
+    --connect listen on every interface's port 7447, so a second one on the host failed, and turned multicast
+    scouting and shared memory on (thirty-sixth outside check). Where the file's text does not name them, they
+    are what they are without a file; where it does, the file's."""
+    lease_only = tmp_path / "lease.json5"
+    lease_only.write_text("{ transport: { link: { tx: { lease: 2000 } } } }")
+    joining = _cli.settings_from(serve_args("--connect", "tcp/10.0.0.1:7447", "--config", str(lease_only)))
+    config = joining.zenoh_config()
+    assert config.get_json("listen/endpoints") == "[]"
+    assert config.get_json("scouting/multicast/enabled") == "false"
+    assert config.get_json("transport/shared_memory/enabled") == "false"
+    assert config.get_json("transport/link/tx/lease") == "2000"
+    alone = _cli.settings_from(serve_args("--config", str(lease_only)))
+    assert alone.zenoh_config().get_json("listen/endpoints") == '["tcp/127.0.0.1:7447"]'
+    router = _cli.router_settings_from(serve_args("--router-only", "--connect", "tcp/10.0.0.1:7447",
+                                                  "--config", str(lease_only)))
+    assert router.zenoh_config().get_json("listen/endpoints") == "[]"
+    own = tmp_path / "own.json5"
+    own.write_text('{ listen: { endpoints: ["tcp/127.0.0.1:7555"] }, scouting: { multicast: { enabled: true } },\n'
+                   "  transport: { shared_memory: { enabled: true } } }")
+    config = _cli.settings_from(serve_args("--connect", "tcp/10.0.0.1:7447", "--config", str(own))).zenoh_config()
+    assert config.get_json("listen/endpoints") == '["tcp/127.0.0.1:7555"]'
+    assert config.get_json("scouting/multicast/enabled") == "true"
+    assert config.get_json("transport/shared_memory/enabled") == "true"
+
+
 def test_router_only_settings() -> None:
     router = _cli.router_settings_from(serve_args("--router-only", "--listen", "tcp/0.0.0.0:7447", "--namespace", "lab"))
     assert router == RouterSettings(namespace="lab", listen=("tcp/0.0.0.0:7447",))
