@@ -373,6 +373,14 @@ class Client:
                 # no such object: the same news either way
                 if self._worker_gone(worker, life):
                     raise self._gone_error(worker, name) from None
+                if name is not None and type(error) is WorkerUnavailableError:
+                    # the object's worker answered UNAVAILABLE: it is shutting down, and its token goes next. A
+                    # handle's caller recovers from ObjectUnavailableError, as after a kill (thirty-sixth outside
+                    # check: a SIGTERM's refusals escaped `except ObjectUnavailableError: reregister()`)
+                    raise ObjectUnavailableError(
+                        f"object {name!r} is unavailable: {error.message}. Its worker takes the object's state "
+                        "with it: once the handle's `available` turns False (its liveliness token goes, within "
+                        "moments), reregister() restores the object on another worker") from None
                 if registration is None:
                     raise
                 refused = refused or error

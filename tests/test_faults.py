@@ -205,8 +205,10 @@ def test_a_stopping_worker_answers_the_request_in_progress_and_refuses_the_waiti
     answered = [outcome for outcome in outcomes if outcome == (len(points),)]
     refused = [outcome for outcome in outcomes if isinstance(outcome, WorkerUnavailableError)]
     assert len(answered) == 1 and len(refused) == 3, outcomes
-    # the worker's "shutting down", or, read after the token went, the client's "gone": unavailable either way
+    # the worker's "shutting down", or, read after the token went, the client's "gone": unavailable either way,
+    # and to a handle as ObjectUnavailableError, which the documented recovery (reregister) catches
     assert all("shutting down" in str(error) or "is gone" in str(error) for error in refused), refused
+    assert all(isinstance(error, ObjectUnavailableError) for error in refused), refused
 
 
 def test_a_viewer_that_stops_reading_stalls_nobody(worker, endpoint: str, client: Client) -> None:
