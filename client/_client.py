@@ -377,12 +377,12 @@ class Client:
                     # the object's worker answered UNAVAILABLE: it is shutting down, and its token goes next. A
                     # handle's caller recovers from ObjectUnavailableError, as after a kill (thirty-sixth outside
                     # check: a SIGTERM's refusals escaped `except ObjectUnavailableError: reregister()`)
-                    raise ObjectUnavailableError(
+                    error = ObjectUnavailableError(
                         f"object {name!r} is unavailable: {error.message}. Its worker takes the object's state "
                         "with it: once the handle's `available` turns False (its liveliness token goes, within "
-                        "moments), reregister() restores the object on another worker") from None
+                        "moments), reregister() restores the object on another worker")
                 if registration is None:
-                    raise
+                    raise error from None
                 refused = refused or error
         if refused is not None:
             raise refused
