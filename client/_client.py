@@ -373,8 +373,10 @@ class Client:
                 # no such object: the same news either way
                 if self._worker_gone(worker, life):
                     raise self._gone_error(worker, name) from None
-                if name is not None and type(error) is WorkerUnavailableError:
-                    # the object's worker answered UNAVAILABLE: it is shutting down, and its token goes next. A
+                if (name is not None and type(error) is WorkerUnavailableError and reply.ok is None
+                        and _is_error_reply(reply.err.payload.to_bytes())):
+                    # the object's worker answered UNAVAILABLE (not Zenoh: "Query was cancelled" from a worker
+                    # still alive stays WorkerUnavailableError): it is shutting down, and its token goes next. A
                     # handle's caller recovers from ObjectUnavailableError, as after a kill (thirty-sixth outside
                     # check: a SIGTERM's refusals escaped `except ObjectUnavailableError: reregister()`)
                     error = ObjectUnavailableError(
