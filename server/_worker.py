@@ -7,6 +7,7 @@ and never stall the objects already served; each object then runs on its own thr
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import re
@@ -41,6 +42,7 @@ from badf.protocol import (
     check_name,
     config_file_names,
     decode,
+    encode,
     zenoh_config,
 )
 from badf.server._objects import Counters, DistanceFieldLike, ServedObject
@@ -50,6 +52,13 @@ log = logging.getLogger("badf.server")
 
 # How long a starting worker waits for the routers to say whether its id is taken (they answer at once)
 _ID_CHECK_TIMEOUT_S = 5.0
+# A worker that finds its clock jumped by more than half of Zenoh's lease between two ticks of this many seconds was
+# stalled (stopped, paused) long enough that the routers may have taken its token, and clients may have registered
+# its objects elsewhere (`Worker._watch_for_stalls`). It then looks for such copies over a window of twice the lease
+# (at least _STALL_WINDOW_S), while its links come back.
+_STALL_TICK_S = 0.25
+_STALL_WINDOW_S = 3.0
+_ZENOH_DEFAULT_LEASE_S = 10.0
 DEFAULT_STATS_INTERVAL_S = 10.0  # seconds between a worker's stats lines (`--stats-interval`)
 # seconds without a frame after which an object gives back what only its next frame would use (`--trim-after`)
 DEFAULT_TRIM_AFTER_S = 10.0
@@ -209,6 +218,11 @@ class Worker:
         # the errors registrations were answered with
         self._last_totals = Counters()
         self._last_stats_at = time.monotonic()
+        self._lease_s = _lease_seconds(settings)
+        self._stopping = threading.Event()
+        self._stall_watch = threading.Thread(target=self._watch_for_stalls, name="badf-stall-watch", daemon=True)
+        self.stalls_seen = 0  # stalls past half the lease, and objects withdrawn after them (for tests and logs)
+        self.withdrawn_after_stalls = 0
 
     @property
     def worker_id(self) -> str:
@@ -232,11 +246,15 @@ class Worker:
             # Declared last: a client that sees the token finds the worker ready.
             self._session.liveliness().declare_token(self._keys.worker_token(self.worker_id)),
         ]
+        self._stall_watch.start()
 
     def close(self) -> None:
         """Stop taking requests, answer what waits with 'unavailable', let what runs finish and answer, stop
         every object, and only then withdraw the liveliness token: a client cancels its requests to a worker
         when the token goes, so withdrawing it first lost the answer of the request in progress."""
+        self._stopping.set()
+        if self._stall_watch.is_alive():
+            self._stall_watch.join()
         entities, self._entities = self._entities, []
         for queryable in entities[:-1]:
             queryable.undeclare()
@@ -268,6 +286,56 @@ class Worker:
     def objects(self) -> list[ServedObject]:
         with self._lock:
             return list(self._objects.values())
+
+    # --- stalls --------------------------------------------------------------------------------------------
+
+    def _watch_for_stalls(self) -> None:
+        """A worker stopped past Zenoh's lease (SIGSTOP, a paused VM) is gone to every client, which may register
+        its objects on another worker (`reregister()`); when it resumes it would serve them too, and a lookup by
+        name could take its stale copy for good (thirty-sixth outside check: 11 of 30). So after a jump of the
+        clock past half the lease, it withdraws each object whose name another worker serves, checking until
+        twice the lease has passed (its links to the routers come back meanwhile)."""
+        last = time.monotonic()
+        while not self._stopping.wait(_STALL_TICK_S):
+            now = time.monotonic()
+            if now - last > self._lease_s / 2.0:
+                self.stalls_seen += 1
+                log.warning("worker %s was stalled for %.1f s (Zenoh's lease is %g s): withdrawing its objects that "
+                            "another worker serves now", self.worker_id, now - last, self._lease_s)
+                deadline = now + max(_STALL_WINDOW_S, 2.0 * self._lease_s)
+                while not self._stopping.is_set() and time.monotonic() < deadline:
+                    self._withdraw_names_served_elsewhere()
+                    self._stopping.wait(_STALL_TICK_S)
+            last = time.monotonic()
+
+    def _withdraw_names_served_elsewhere(self) -> None:
+        mine = {served.name: served for served in self.objects()}
+        if not mine:
+            return
+        elsewhere: dict[str, str] = {}
+        try:
+            replies = self._session.get(self._keys.every_object_info, payload=encode(InfoRequest()),
+                                        timeout=_STALL_TICK_S * 4, consolidation=zenoh.ConsolidationMode.NONE)
+            for reply in replies:
+                if reply.ok is None:
+                    continue
+                try:
+                    info = decode(reply.ok.payload.to_bytes(), ObjectInfo, limits=self.settings.limits)
+                except BadfError:
+                    continue
+                if info.worker != self.worker_id and info.name in mine:
+                    elsewhere[info.name] = info.worker
+        except zenoh.ZError as error:  # no route yet: the next check tries again
+            log.debug("looking for copies after a stall: %s", error)
+            return
+        for name, other in elsewhere.items():
+            served = mine[name]
+            self._forget(served)
+            served.close(ObjectNotFoundError(
+                f"object {name!r} was withdrawn from worker {self.worker_id}: worker {other} serves it, registered "
+                "while this worker was stalled past Zenoh's lease"))
+            self.withdrawn_after_stalls += 1
+            log.warning("withdrew %r: worker %s serves it, registered while this worker was stalled", name, other)
 
     # --- registration ----------------------------------------------------------------------------------
 
@@ -465,6 +533,15 @@ class Worker:
             f"{delta['frames_dropped']} dropped, {delta['frames_rejected']} rejected; "
             f"queries {delta['queries_answered']} ({delta['points_answered']} points); errors {delta['errors']}"
         )
+
+
+def _lease_seconds(settings: WorkerSettings) -> float:
+    """Zenoh's lease as the worker's configuration sets it (`transport/link/tx/lease`, in ms)."""
+    try:
+        lease_ms = json.loads(settings.zenoh_config().get_json("transport/link/tx/lease"))
+        return float(lease_ms) / 1000.0 if lease_ms else _ZENOH_DEFAULT_LEASE_S
+    except (zenoh.ZError, ValueError, TypeError):
+        return _ZENOH_DEFAULT_LEASE_S
 
 
 def serve(

@@ -447,6 +447,43 @@ def test_a_stopped_worker_leaves_the_others_listed_and_placing(endpoint: str) ->
             client.object(name).delete()
 
 
+def test_a_worker_stalled_past_the_lease_withdraws_what_was_registered_elsewhere_meanwhile(endpoint: str,
+                                                                                            tmp_path) -> None:
+    """A worker stopped past Zenoh's lease (2 s here, on every side) is gone to the client, whose handle moves its
+    object to the other worker (`reregister`). Resumed, the stalled worker served its stale copy as well, and a
+    lookup by name took it 11 of 30 times (thirty-sixth outside check). It now withdraws that copy."""
+    lease = tmp_path / "lease.json5"
+    lease.write_text("{ transport: { link: { tx: { lease: 2000, keep_alive: 4 } } } }")
+    left = WorkerSettings(worker_id="left", connect=(endpoint,), device="cpu", stats_interval_s=5.0,
+                          config_file=str(lease))
+    right = dataclasses.replace(left, worker_id="right")
+    vertices, faces = meshes.load("sphere")
+    point = np.array([[3.0, 0.0, 0.0]])
+    with (
+        router_process(RouterSettings(listen=(endpoint,), config_file=str(lease))),
+        worker_process(left),
+        worker_process(right) as stalled,
+        Client(endpoint, timeout=30, config_file=str(lease)) as client,
+    ):
+        wait_until(lambda: len(client.workers()) == 2, timeout=60, what="both workers behind the router")
+        moved = client.register("moved", vertices, faces, depth=3, worker="right")
+        os.kill(stalled.pid, signal.SIGSTOP)  # the worker this test started
+        try:
+            wait_until(lambda: not moved.available, timeout=30, what="the stalled worker's token to go")
+            assert moved.reregister().worker == "left"
+            moved.update(vertices * 2.0)
+        finally:
+            os.kill(stalled.pid, signal.SIGCONT)
+        wait_until(lambda: len(client.workers()) == 2, timeout=30, what="the stalled worker back")
+        wait_until(lambda: [info.worker for info in client.objects() if info.name == "moved"] == ["left"],
+                   timeout=30, what="the stale copy withdrawn")
+        found = client.object("moved")
+        assert found.worker == "left"
+        expected = 3.0 - 2.0 * np.linalg.norm(vertices, axis=1).max()
+        assert abs(float(found.query(point, mode="exact").distance[0]) - expected) < 1e-3
+        moved.delete()
+
+
 def test_a_name_registered_on_two_workers_at_once_is_kept_by_one(endpoint: str, monkeypatch) -> None:
     """Two clients registering one new name on two workers at once could both succeed, and the name was then
     served by both: every handle's requests met the other worker's refusals (twenty-eighth outside check: all of
