@@ -106,6 +106,35 @@ def test_queries_through_staged_host_buffers_answer_as_direct_copies(device, dty
     assert len(points) > 200 and staged._points._staged  # both paths ran
 
 
+@pytest.mark.parametrize("sign", ["auto", "winding", "none"])
+def test_batches_walked_in_morton_order_answer_as_in_the_callers_order(device, sign, monkeypatch):
+    """A batch of at least ORDERED_POINTS points may be walked in its points' Morton order (turned on here, on
+    either device, with a low threshold). Float32 and float64 points, a band, far points, a rigid frame's turned points, and batches
+    that grow and shrink give the same bits as an object walking them in the caller's order, each answer in its
+    own row."""
+    monkeypatch.setattr("badf.server.adf._distance.ORDERED_POINTS", 64)
+    vertices, faces = meshes.load("spot")
+    rng = np.random.default_rng(12)
+    fields = [DistanceField(vertices, faces, depth=4, sign=sign, band=0.3, device=device) for _ in range(2)]
+    ordered, plain = fields
+    ordered._points.ordered_modes, plain._points.ordered_modes = {"exact", "adf"}, set()
+    points = query_points(ordered, vertices, faces, rng)
+    turn = trimesh.transformations.rotation_matrix(0.7, [1.0, 2.0, 0.5])[:3, :3]
+    for frame in range(2):
+        if frame == 1:  # a rigid frame: the points are turned into the field's frame on the device
+            for field in fields:
+                field.update(vertices @ turn.T + np.array([0.2, -0.1, 0.05]))
+            assert ordered.info()["pose"] is not None
+        for count, dtype in ((40, np.float64), (len(points), np.float32), (len(points), np.float64), (90, np.float32)):
+            batch = points[:count].astype(dtype)
+            for mode in ("adf", "exact"):
+                got = ordered.query(batch, mode=mode, outputs=ALL_OUTPUTS)
+                want = plain.query(batch, mode=mode, outputs=ALL_OUTPUTS)
+                for name in ALL_OUTPUTS:
+                    assert np.array_equal(getattr(got, name), getattr(want, name)), (frame, count, mode, name)
+    assert ordered._points.buffers.holds("query.order", 2 * len(points))  # the ordered walk ran
+
+
 @pytest.mark.parametrize("shape", ["slab", "cylinder"])
 def test_exact_queries_hold_beside_long_narrow_triangles(device, shape):
     """A slab 2e-4 thick (its sides are two triangles 2e-4 of their length wide) and a cylinder of 2,048

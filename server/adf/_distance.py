@@ -52,7 +52,7 @@ from badf.server.adf._sign import (
     wound_side,
 )
 from badf.server.adf._threads import COUNTS_ROOM, launch_per_item
-from badf.server.adf._tolerances import STAGED_POINTS, SURFACE_SNAP
+from badf.server.adf._tolerances import ORDERED_POINTS, STAGED_POINTS, SURFACE_SNAP
 
 # No fused multiply-adds in this module's kernels (nor in the point queries'): with them, the compiler may
 # round the same triangle arithmetic differently where it is inlined at two places, so a seed's distance
@@ -108,6 +108,8 @@ SEARCH_BLOCK_DIM = 64
 SIGN_BLOCK_DIM = 64
 SEARCH_MAX_REGISTERS = 64
 SIGN_MAX_REGISTERS = 64
+# The point-query kernel's cap (None: the compiler's choice, 255 registers on an H100 at 2026-12-07).
+QUERY_MAX_REGISTERS: int | None = None
 
 
 class SearchSplit:
@@ -433,6 +435,9 @@ class PointQuery:
         self.device = buffers.device
         self.staging = self.device.is_cuda  # (tests turn it on for the CPU, where the twins are plain host arrays)
         self._staged: dict[str, wp.array] = {}
+        # batches of at least ORDERED_POINTS points, in these modes, are walked in their points' Morton order
+        # (`_order`); off until timed on a GPU (bench/probes/probe_query_order.py); tests turn it on
+        self.ordered_modes: set[str] = set()
 
     def _stage(self, name: str, count: int, dtype) -> wp.array | None:
         """A pinned host array of at least `count` elements for a batch on CUDA of at most STAGED_POINTS, grown
@@ -450,6 +455,22 @@ class PointQuery:
     def give_back(self) -> None:
         """Free the pinned host buffers (a trim); the next batch makes them again."""
         self._staged.clear()
+
+    def _order(self, points: wp.array, n: int, placing: list, octree: OctreeView, side: float,
+               exact: bool) -> wp.array | None:
+        """The batch's point indices sorted by their Morton keys in the domain (10 bits an axis, clamped to it), for
+        a batch to be walked in that order; None where it is walked as it came. A caller's points come in its own
+        order (uniform samples, another mesh's vertices): a warp of 32 scattered points waits for the longest of 32
+        unrelated walks, where 32 neighbours walk much the same nodes. Each thread still answers its own point, so
+        every answer is the same either way."""
+        if ("exact" if exact else "adf") not in self.ordered_modes or n < ORDERED_POINTS:
+            return None
+        keys = self.buffers.ensure("query.order_keys", 2 * n, wp.int32, headroom=True)  # twice: the radix sort's room
+        order = self.buffers.ensure("query.order", 2 * n, wp.int32, headroom=True)
+        wp.launch(_point_keys, dim=n, inputs=[points, *placing, octree.origin, 1.0 / side], outputs=[keys, order],
+                  device=self.device)
+        wp.utils.radix_sort_pairs(keys, order, n, end_bit=3 * _ORDER_BITS)
+        return order
 
     def run(self, points: np.ndarray, offset: np.ndarray, scale: float, *, exact: bool, outputs: int,
             octree: OctreeView, corner_value: wp.array, corner_leaf: wp.array, bvh: BvhView, sign: SignView,
@@ -474,15 +495,17 @@ class PointQuery:
         # shared out over the CPU's cores by points: the points and the outputs asked for (the others hold one slot)
         asked = [arr for arr, bit in ((distance, OUT_DISTANCE), (closest, OUT_CLOSEST), (normal, OUT_NORMAL),
                                       (face, OUT_FACE)) if outputs & bit]
+        placing = [wp.vec3(*offset), scale, 0 if turn is None else 1,
+                   wp.mat33(*(np.eye(3) if turn is None else turn).reshape(-1)),
+                   wp.vec3(*(np.zeros(3) if shift is None else shift))]
+        order = self._order(device_points, n, placing, octree, side, exact)
         launch_per_item(
             query_kernel(sign.method),
             n,
-            inputs=[device_points, wp.vec3(*offset), scale, 0 if turn is None else 1,
-                    wp.mat33(*(np.eye(3) if turn is None else turn).reshape(-1)),
-                    wp.vec3(*(np.zeros(3) if shift is None else shift)), 1 if exact else 0, outputs, octree,
+            inputs=[device_points, order, 0 if order is None else 1, *placing, 1 if exact else 0, outputs, octree,
                     corner_value, corner_leaf, bvh, sign, 1.0 / side, band or 0.0],
             outputs=[distance, closest, normal, face],
-            sliced=(device_points, *asked),
+            sliced=(device_points, *asked) if order is None else None,  # an order reaches across the whole batch
             device=self.device,
         )
         staged = []
@@ -502,6 +525,29 @@ class PointQuery:
         wp.synchronize_device(self.device)
         for name, host in staged:
             results[name][start : start + n] = host.numpy()[:n]
+
+
+# bits an axis of the Morton keys that order a batch of query points: 2^10 cells a side, 30-bit keys
+_ORDER_BITS = 10
+
+
+@wp.kernel(enable_backward=False)
+def _point_keys(points: wp.array(dtype=wp.vec3), offset: wp.vec3, to_local: float, turned: int, turn: wp.mat33,
+                shift: wp.vec3, origin: wp.vec3, inv_side: float, keys: wp.array(dtype=wp.int32),
+                order: wp.array(dtype=wp.int32)):
+    """Each point's Morton key in the domain's cube (clamped to it), placed as the query kernel places it, and its
+    index, for the sort that orders a batch."""
+    i = wp.tid()
+    p = (points[i] - offset) * to_local
+    if turned != 0:
+        p = turn * p - shift
+    top = float((1 << _ORDER_BITS) - 1)
+    g = (p - origin) * (inv_side * float(1 << _ORDER_BITS))
+    x = int(wp.clamp(g[0], 0.0, top))
+    y = int(wp.clamp(g[1], 0.0, top))
+    z = int(wp.clamp(g[2], 0.0, top))
+    keys[i] = wp.int32(morton3(x, y, z))
+    order[i] = i
 
 
 @wp.func
@@ -1150,6 +1196,8 @@ def _make_query_kernel(method: int) -> wp.Kernel:
 
     def query_points(
         points: wp.array(dtype=wp.vec3),
+        order: wp.array(dtype=wp.int32),
+        ordered: int,
         offset: wp.vec3,
         to_local: float,
         turned: int,
@@ -1170,6 +1218,8 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         out_face: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
+        if ordered != 0:  # the batch walked in its points' Morton order (PointQuery._order)
+            i = order[i]
         p = (points[i] - offset) * to_local
         if turned != 0:  # a rigid frame's points, turned into the field's frame (DistanceField._answer)
             p = turn * p - shift
@@ -1345,5 +1395,6 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         if outputs & _OUT_FACE:
             out_face[i] = face
 
+    capped = {} if QUERY_MAX_REGISTERS is None else {"cuda_max_registers": QUERY_MAX_REGISTERS}
     return wp.kernel(query_points, name=f"query_points_{method}", enable_backward=False, module="unique",
-                     module_options=EXACT_ROUNDING)
+                     module_options=EXACT_ROUNDING, **capped)

@@ -172,6 +172,11 @@ QUERY_CHUNK = 1 << 20
 # rate (a pageable copy is staged by the driver); larger batches go pageable, so an object pins at most 2.9 MB.
 STAGED_POINTS = 1 << 16
 
+# Where ordering is on (PointQuery.ordered_modes), a batch of at least this many points is walked in its points'
+# Morton order (a sort on the device): a warp's walks then start near each other, where a caller's order (uniform
+# samples) gives each warp 32 unrelated walks.
+ORDERED_POINTS = 1 << 12
+
 # Size limits checked at the boundary (vertex and face indices stay within int32 arithmetic).
 MAX_VERTICES = 1 << 26
 MAX_FACES = 1 << 26
