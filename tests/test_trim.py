@@ -3,8 +3,10 @@ changes no answer; a worker trims an object that has had no frame for `trim_afte
 
 from __future__ import annotations
 
+import gc
 import threading
 import time
+import weakref
 
 import numpy as np
 import pytest
@@ -84,6 +86,33 @@ def test_a_trim_gives_back_what_only_later_frames_use_and_changes_no_answer(devi
     assert np.abs(values - oracle.signed_distance(positions, bent, faces)).max() <= (
         tol.EXACT_DISTANCE * oracle.bbox_diagonal(bent))
     assert field.stats()["memory_bytes"]["coherence"] == twin.stats()["memory_bytes"]["coherence"] > 0
+
+
+def test_the_views_kept_for_queries_let_go_of_what_a_trim_or_a_frame_replaced(device: str) -> None:
+    """Queries reuse their kernels' views while the arrays in them stay the same (`KeptViews`); a kept view holds its
+    arrays, so a trim must let go of the BVH's boxes and triangles for their memory to be freed, and a frame whose
+    octree outgrew its arrays must let go of the old ones. Answers after both are those of a twin whose views were
+    made after them, bit for bit."""
+    vertices, faces = meshes.load("spot")
+    points = np.random.default_rng(5).uniform(vertices.min(axis=0), vertices.max(axis=0), (200, 3))
+    field, twin = (DistanceField(vertices, faces, depth=4, device=device) for _ in range(2))
+    field.query(points, outputs=ALL_OUTPUTS)
+    boxes = weakref.ref(field._bvh.wide.planes)
+    field.trim()
+    gc.collect()
+    assert boxes() is None
+    _assert_same(field.query(points, outputs=ALL_OUTPUTS), twin.query(points, outputs=ALL_OUTPUTS))
+    # a crumpled frame has many more surface cells than the plan holds: the octree's arrays grow
+    nodes = weakref.ref(field._octree.first_child)
+    crumpled = vertices + 0.05 * np.sin(40.0 * vertices[:, [1, 2, 0]])
+    field.update(crumpled)
+    gc.collect()
+    assert nodes() is None
+    twin.trim()
+    twin.update(crumpled)
+    for mode in ("adf", "exact"):
+        _assert_same(field.query(points, mode=mode, outputs=ALL_OUTPUTS),
+                     twin.query(points, mode=mode, outputs=ALL_OUTPUTS))
 
 
 def test_a_rigid_body_trimmed_mid_run_keeps_its_pose(device: str) -> None:

@@ -32,7 +32,7 @@ import math
 import numpy as np
 import warp as wp
 
-from badf.server.adf._buffers import DeviceBuffers
+from badf.server.adf._buffers import DeviceBuffers, KeptViews
 from badf.server.adf._bvh_shape import Shape
 from badf.server.adf._geometry import (
     KEY_TOP_BIT,
@@ -172,6 +172,7 @@ class Bvh:
         self.winding_cuts = b.array("bvh.winding_cuts", 2, wp.int32)
         # measure_spread's sums, this frame's (read with its report) and the linking frame's (zero: never measured)
         self.leaf_spread = b.array("bvh.leaf_spread", 4, wp.int64)
+        self._views = KeptViews(BvhView)
 
     def _allocate_geometry(self, *, empty_boxes: bool) -> None:
         """The arrays a refit writes in full: the triangles packed for the searches, the winding moments and the
@@ -196,6 +197,7 @@ class Bvh:
         held = self.holds_geometry
         if held:
             wp.synchronize_device(self.device)
+        self._views.clear()  # a kept view would hold the arrays
         self.triangles = self.node_moments = self.wide.planes = None
         for name in ("bvh.triangles", "bvh.node_moments", "bvh.wide.planes"):  # also what a failed hold made
             self._buffers.release(name)
@@ -341,23 +343,14 @@ class Bvh:
 
     def view(self, cut_slot: int = 0) -> BvhView:
         """The tree as kernels take it; its winding walks count their cuts in `winding_cuts[cut_slot]`."""
-        v = BvhView()
-        v.internal_count = self.internal_count
-        v.code_levels, v.index_bits = self.code_levels, self.index_bits
-        v.slot_child = self.slot_child
-        v.triangles = self.triangles
-        v.leaf_face = self.leaf_face
-        v.face_leaf = self.face_leaf
-        v.leaf_key = self.leaf_key
-        v.key_leaf = self.key_leaf
-        v.keys_in_leaf_order = 1 if self.shape is None else 0
-        v.far_field = self.far_field
-        v.winding_budget, v.soup_area, v.winding_cuts = self.winding_budget, self.soup_area, self.winding_cuts
-        v.leaf_spread, v.cut_slot, v.fat_area = self.leaf_spread, cut_slot, self.fat_area
-        v.node_moments = self.node_moments
-        v.wide_planes, v.wide_child, v.wide_first = self.wide.planes, self.wide.child, self.wide.first
-        v.rim, v.rim_count = self.rim, self.rim_count
-        return v
+        return self._views.view(dict(
+            internal_count=self.internal_count, code_levels=self.code_levels, index_bits=self.index_bits,
+            slot_child=self.slot_child, triangles=self.triangles, leaf_face=self.leaf_face, face_leaf=self.face_leaf,
+            leaf_key=self.leaf_key, key_leaf=self.key_leaf, keys_in_leaf_order=1 if self.shape is None else 0,
+            far_field=self.far_field, winding_budget=self.winding_budget, soup_area=self.soup_area,
+            winding_cuts=self.winding_cuts, leaf_spread=self.leaf_spread, cut_slot=cut_slot, fat_area=self.fat_area,
+            node_moments=self.node_moments, wide_planes=self.wide.planes, wide_child=self.wide.child,
+            wide_first=self.wide.first, rim=self.rim, rim_count=self.rim_count), slot=cut_slot)
 
     def leaf_faces(self) -> np.ndarray:
         return self.leaf_face.numpy()

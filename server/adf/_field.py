@@ -556,7 +556,7 @@ class DistanceField:
         before = self._buffers.nbytes()
         self._give_back_scratch()
         self._bvh.give_back_build()
-        self._bvh.give_back_geometry()
+        self._bvh.give_back_geometry()  # with its kept views, which hold the arrays
         self._corners.forget_frame()
         for prefix in ("query.", "slice."):
             self._buffers.release(prefix)
@@ -922,7 +922,15 @@ class DistanceField:
                 self._planned = True
             self._corners.keep_frame(self._report_on_device, self._fits_at, queued=self._keep_queued)
         self._watch_plan()
+        self._keep_query_views_current()
         self._counters.last_update_wall_ms = (time.perf_counter() - wall) * 1e3
+
+    def _keep_query_views_current(self) -> None:
+        """Make the queries' kernel views again where this frame replaced an array they hold (`KeptViews`), so the
+        replaced array is freed now, not at the next query: about 10 us a frame where nothing was replaced."""
+        self._octree.view(self._domain.origin, self._domain.local_side)
+        self._bvh.view(cut_slot=1)
+        self._normals.view()
 
     @property
     def _relink_due(self) -> bool:

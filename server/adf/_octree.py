@@ -26,7 +26,7 @@ from typing import Literal
 import numpy as np
 import warp as wp
 
-from badf.server.adf._buffers import DeviceBuffers, HostReadback, SharedScratch
+from badf.server.adf._buffers import DeviceBuffers, HostReadback, KeptViews, SharedScratch
 from badf.server.adf._bvh import link_radix_tree
 from badf.server.adf._hashset import UNLISTED, HashSet, HashSetView, listed_count, set_insert, with_headroom
 from badf.server.adf._geometry import KEY_TOP_BIT, morton3, morton3_decode, popcount, quantize, triangle_overlaps_cube
@@ -102,6 +102,7 @@ class Octree:
         self.depth = depth
         self.refine = refine
         self.halo = halo
+        self._views = KeptViews(OctreeView)
         self.buffers = buffers
         self.device = buffers.device
         self.host = HostReadback(self.device)
@@ -261,16 +262,10 @@ class Octree:
         self.level_counts = np.diff(np.append(level_starts.astype(np.int64), self.node_count))
 
     def view(self, origin: wp.vec3, side: float) -> OctreeView:
-        v = OctreeView()
-        v.depth = self.depth
-        v.origin = origin
-        v.cell = side / float(1 << self.depth)
-        v.region_lower, v.region_upper = self.region_box
-        v.coarse_leaves_clear = 1 if self.refine == "surface" else 0
-        v.child_mask = self.child_mask
-        v.first_child = self.first_child
-        v.corner_slot = self.corner_slot
-        return v
+        return self._views.view(dict(
+            depth=self.depth, origin=origin, cell=side / float(1 << self.depth), region_lower=self.region_box[0],
+            region_upper=self.region_box[1], coarse_leaves_clear=1 if self.refine == "surface" else 0,
+            child_mask=self.child_mask, first_child=self.first_child, corner_slot=self.corner_slot))
 
     # -- stage 1: surface cells -------------------------------------------------------------------------
     def _surface_cells(self, vertices, faces, face_count: int, origin: wp.vec3, side: float, measure: bool) -> wp.array:

@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 import warp as wp
 
-from badf.server.adf._buffers import DeviceBuffers, HostStaged
+from badf.server.adf._buffers import DeviceBuffers, HostStaged, KeptViews
 from badf.server.adf._bvh import (
     NO_CHILD,
     BvhView,
@@ -518,6 +518,7 @@ class Pseudonormals:
         self.method = method
         self.device = buffers.device
         self.faces = faces
+        self._views = KeptViews(SignView)
         self.face_count = faces.shape[0]
         self.edge_count = topology.edge_count
         active = method == "pseudonormal"
@@ -640,15 +641,9 @@ class Pseudonormals:
         return _SIGN_CODES[self.method]
 
     def view(self) -> SignView:
-        v = SignView()
-        v.method = self.code
-        v.winding_frame = self.winding_frame
-        v.corner_fan = self.corner_fan
-        v.face_edge = self.face_edge
-        v.face_normal = self.face_normal
-        v.vertex_normal = self.vertex_normal
-        v.edge_normal = self.edge_normal
-        return v
+        return self._views.view(dict(
+            method=self.code, winding_frame=self.winding_frame, corner_fan=self.corner_fan, face_edge=self.face_edge,
+            face_normal=self.face_normal, vertex_normal=self.vertex_normal, edge_normal=self.edge_normal))
 
 
 @wp.func
