@@ -29,7 +29,7 @@ parser.add_argument("meshes", nargs="+")
 parser.add_argument("--device", default="cuda:0")
 parser.add_argument("--repeat", type=int, default=15)
 parser.add_argument("--depth", type=int, default=7)
-parser.add_argument("--sizes", type=int, nargs="+", default=[1_024, 4_096, 16_384, 65_536, 1_048_576])
+parser.add_argument("--sizes", type=int, nargs="*", default=[1_024, 4_096, 16_384, 65_536, 1_048_576])
 parser.add_argument("--registers", type=int, nargs="*", default=[],
                     help="also time the query kernel capped at these register counts (0: uncapped), Morton order")
 parser.add_argument("--out")
@@ -71,7 +71,7 @@ for path in args.meshes:
     vertices, faces = mesh["vertices"].astype(np.float32), mesh["faces"].astype(np.int32)
     field = DistanceField(vertices, faces, depth=args.depth, device=args.device)
     name = pathlib.Path(path).stem
-    sets = point_sets(vertices, faces, max(args.sizes), np.random.default_rng(0))
+    sets = point_sets(vertices, faces, max(args.sizes, default=1), np.random.default_rng(0))
     for size in args.sizes:
         for kind, points in sets.items():
             if size > 65_536 and kind == "near":

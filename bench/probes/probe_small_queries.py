@@ -4,21 +4,20 @@ work sets rather than the kernel's.
     python3 bench/probes/probe_small_queries.py MESH.npz [--device cuda:0] [--repeat K] [--json]
 
 Prints, for 1, 16 and 256 points near the mesh, ADF and exact, the median and 90th percentile wall time of K
-queries after warm-up, and the revision of the engine imported (run it once per revision, alternating, to compare
-them on one machine).
+queries after warm-up, with the queries' kernel views kept (`KeptViews`) and made anew, alternating in blocks of 20
+queries in one process.
 """
 
 import argparse
 import json
-import pathlib
 import statistics
 import time
 
 import numpy as np
 import warp as wp
 
-import badf.server.adf as adf
 from badf.server.adf import DistanceField
+from badf.server.adf._buffers import KeptViews
 
 parser = argparse.ArgumentParser()
 parser.add_argument("mesh")
@@ -42,18 +41,23 @@ for count in (1, 16, 256):
     for mode in ("adf", "exact"):
         for _ in range(20):
             field.query(points, mode=mode)
-        walls = []
-        for _ in range(args.repeat):
-            start = time.perf_counter()
-            field.query(points, mode=mode)
-            walls.append((time.perf_counter() - start) * 1e6)
-        walls.sort()
-        rows.append({"points": count, "mode": mode, "median_us": statistics.median(walls),
-                     "p90_us": walls[int(0.9 * len(walls))]})
-where = str(pathlib.Path(adf.__file__).resolve().parent.parent.parent)
+        walls = {True: [], False: []}
+        for block in range(2 * (args.repeat // 20)):
+            KeptViews.keep = block % 2 == 0
+            for _ in range(20):
+                start = time.perf_counter()
+                field.query(points, mode=mode)
+                walls[KeptViews.keep].append((time.perf_counter() - start) * 1e6)
+        KeptViews.keep = True
+        for keep, values in walls.items():
+            values.sort()
+            rows.append({"points": count, "mode": mode, "views": "kept" if keep else "made",
+                         "median_us": statistics.median(values), "p90_us": values[int(0.9 * len(values))]})
+name = wp.get_device(args.device).name
 if args.json:
-    print(json.dumps({"engine": where, "device": wp.get_device(args.device).name, "rows": rows}))
+    print(json.dumps({"device": name, "rows": rows}))
 else:
-    print(f"engine at {where}, {wp.get_device(args.device).name}, median of {args.repeat}")
+    print(f"{name}, {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC, {args.repeat} queries each")
     for row in rows:
-        print(f"{row['points']:>5d} points {row['mode']:5s} median {row['median_us']:8.1f} us  p90 {row['p90_us']:8.1f} us")
+        print(f"{row['points']:>5d} points {row['mode']:5s} views {row['views']}: median {row['median_us']:8.1f} us"
+              f"  p90 {row['p90_us']:8.1f} us")

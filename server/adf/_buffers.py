@@ -276,6 +276,9 @@ class KeptViews:
     while every field is the one it was made with. A kept view holds its arrays, so an array replaced since stays
     alive until its slot's next view is made: `clear` (a trim) lets go of all of them."""
 
+    # False: every view made anew (for bench/probes/probe_small_queries.py to compare)
+    keep = True
+
     def __init__(self, struct):
         self._struct = struct
         self._kept: dict[int, tuple[tuple, object]] = {}
@@ -284,7 +287,7 @@ class KeptViews:
         """The struct with these field values, kept in `slot` (a view per slot: the frame's and the queries')."""
         values = tuple(fields.values())
         kept = self._kept.get(slot)
-        if kept is not None and kept[0] == values:
+        if kept is not None and kept[0] == values and KeptViews.keep:
             return kept[1]
         view = self._struct()
         for name, value in fields.items():

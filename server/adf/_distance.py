@@ -436,8 +436,10 @@ class PointQuery:
         self.staging = self.device.is_cuda  # (tests turn it on for the CPU, where the twins are plain host arrays)
         self._staged: dict[str, wp.array] = {}
         # batches of at least ORDERED_POINTS points, in these modes, are walked in their points' Morton order
-        # (`_order`); off until timed on a GPU (bench/probes/probe_query_order.py); tests turn it on
-        self.ordered_modes: set[str] = set()
+        # (`_order`): exact ones on CUDA, where a warp's 32 walks wait for the longest. The sort costs about 0.1 ms
+        # at 65,536 points on an H100, which the ADF kernel's short walks never win back (bench/probes/
+        # probe_query_order.py; docs/engine.md, "A batch query's time"). Tests turn it on for the CPU
+        self.ordered_modes: set[str] = {"exact"} if self.device.is_cuda else set()
 
     def _stage(self, name: str, count: int, dtype) -> wp.array | None:
         """A pinned host array of at least `count` elements for a batch on CUDA of at most STAGED_POINTS, grown
