@@ -84,7 +84,8 @@ def launch_per_item(kernel, dim: int, inputs: list, outputs: list, *, sliced: tu
     an int that the kernel adds to its thread index to find its item, and each chunk gets it plus its first item.
     Returns once every chunk has run; a chunk's error is raised here."""
     device = wp.get_device(device)
-    threads = cpu_threads() if device.is_cpu and sliced is not None else 1
+    # fewer than two chunks' items stay one launch, whatever the threads (a small query need not read the setting)
+    threads = cpu_threads() if device.is_cpu and sliced is not None and dim >= 2 * MIN_CHUNK else 1
     chunks = chunks_for(dim, threads)
     if chunks <= 1:
         wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, **launch_options)
