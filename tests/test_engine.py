@@ -13,6 +13,7 @@ import tolerances as tol
 from badf.server.adf import DistanceField, InvalidInputError
 from badf.server.adf._distance import EXACT_ROUNDING, CornerField, _settle_far_list
 from badf.server.adf._geometry import quantize
+from badf.server.adf._threads import MIN_CHUNK
 from badf.server.adf._bvh import (
     EMPTY_BOX,
     NO_CHILD,
@@ -107,18 +108,25 @@ def test_queries_through_staged_host_buffers_answer_as_direct_copies(device, dty
 
 
 @pytest.mark.parametrize("sign", ["auto", "winding", "none"])
-def test_batches_walked_in_morton_order_answer_as_in_the_callers_order(device, sign, monkeypatch):
-    """A batch of at least ORDERED_POINTS points may be walked in its points' Morton order (turned on here, on
-    either device, with a low threshold). Float32 and float64 points, a band, far points, a rigid frame's turned points, and batches
+def test_batches_walked_in_morton_order_answer_as_in_the_callers_order(device, sign):
+    """A batch of at least `ordered_from` points may be walked in its points' Morton order (exact ones by default;
+    here ADF ones too, from 64 points). Float32 and float64 points, a band, far points, a rigid frame's turned points, and batches
     that grow and shrink give the same bits as an object walking them in the caller's order, each answer in its
     own row."""
-    monkeypatch.setattr("badf.server.adf._distance.ORDERED_POINTS", 64)
     vertices, faces = meshes.load("spot")
     rng = np.random.default_rng(12)
     fields = [DistanceField(vertices, faces, depth=4, sign=sign, band=0.3, device=device) for _ in range(2)]
     ordered, plain = fields
     ordered._points.ordered_modes, plain._points.ordered_modes = {"exact", "adf"}, set()
+    ordered._points.ordered_from = 64
     points = query_points(ordered, vertices, faces, rng)
+    # a batch the CPU shares out over its cores in chunks (each a slice of the order): twice MIN_CHUNK and more
+    many = np.concatenate([points] * (2 * MIN_CHUNK // len(points) + 1))
+    many = many + rng.normal(scale=1e-3, size=many.shape)
+    for mode in ("adf", "exact"):
+        got, want = (field.query(many, mode=mode, outputs=ALL_OUTPUTS) for field in fields)
+        for name in ALL_OUTPUTS:
+            assert np.array_equal(getattr(got, name), getattr(want, name)), (len(many), mode, name)
     turn = trimesh.transformations.rotation_matrix(0.7, [1.0, 2.0, 0.5])[:3, :3]
     for frame in range(2):
         if frame == 1:  # a rigid frame: the points are turned into the field's frame on the device

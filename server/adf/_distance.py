@@ -435,11 +435,11 @@ class PointQuery:
         self.device = buffers.device
         self.staging = self.device.is_cuda  # (tests turn it on for the CPU, where the twins are plain host arrays)
         self._staged: dict[str, wp.array] = {}
-        # batches of at least ORDERED_POINTS points, in these modes, are walked in their points' Morton order
-        # (`_order`): exact ones on CUDA, where a warp's 32 walks wait for the longest. The sort costs about 0.1 ms
-        # at 65,536 points on an H100, which the ADF kernel's short walks never win back (bench/probes/
-        # probe_query_order.py; docs/engine.md, "A batch query's time"). Tests turn it on for the CPU
-        self.ordered_modes: set[str] = {"exact"} if self.device.is_cuda else set()
+        # batches of at least `ordered_from` points, in these modes, are walked in their points' Morton order
+        # (`_order`): exact ones, whose walks are long. ADF ones never won back the sort (about 0.1 ms at 65,536
+        # points on an H100; bench/probes/probe_query_order.py, docs/engine.md "A batch query's time")
+        self.ordered_modes: set[str] = {"exact"}
+        self.ordered_from = ORDERED_POINTS["cuda" if self.device.is_cuda else "cpu"]
 
     def _stage(self, name: str, count: int, dtype) -> wp.array | None:
         """A pinned host array of at least `count` elements for a batch on CUDA of at most STAGED_POINTS, grown
@@ -465,7 +465,7 @@ class PointQuery:
         order (uniform samples, another mesh's vertices): a warp of 32 scattered points waits for the longest of 32
         unrelated walks, where 32 neighbours walk much the same nodes. Each thread still answers its own point, so
         every answer is the same either way."""
-        if ("exact" if exact else "adf") not in self.ordered_modes or n < ORDERED_POINTS:
+        if ("exact" if exact else "adf") not in self.ordered_modes or n < self.ordered_from:
             return None
         keys = self.buffers.ensure("query.order_keys", 2 * n, wp.int32, headroom=True)  # twice: the radix sort's room
         order = self.buffers.ensure("query.order", 2 * n, wp.int32, headroom=True)
@@ -507,7 +507,8 @@ class PointQuery:
             inputs=[device_points, order, 0 if order is None else 1, *placing, 1 if exact else 0, outputs, octree,
                     corner_value, corner_leaf, bvh, sign, 1.0 / side, band or 0.0],
             outputs=[distance, closest, normal, face],
-            sliced=(device_points, *asked) if order is None else None,  # an order reaches across the whole batch
+            # in order, a thread reads its point and writes its outputs where the order says: only the order is cut
+            sliced=(device_points, *asked) if order is None else (order,),
             device=self.device,
         )
         staged = []

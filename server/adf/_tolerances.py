@@ -172,12 +172,13 @@ QUERY_CHUNK = 1 << 20
 # rate (a pageable copy is staged by the driver); larger batches go pageable, so an object pins at most 2.9 MB.
 STAGED_POINTS = 1 << 16
 
-# Where ordering is on (PointQuery.ordered_modes: exact queries on CUDA), a batch of at least this many points is
-# walked in its points' Morton order (a sort on the device): a warp's walks then start near each other, where a
-# caller's order (uniform samples) gives each warp 32 unrelated walks. On an H100 (2026-12-07) ordering changed the
-# bunny's and the armadillo's exact queries by +13% to -18% at 65,536 points (the sort, about 0.1 ms, against what it
-# saves) and by -16% to -53% at 1,048,576; sizes between the two were not measured.
-ORDERED_POINTS = 1 << 17
+# An exact batch of at least this many points, by device kind, is walked in its points' Morton order (a sort on the
+# device, PointQuery._order): a warp's (or a CPU thread's) walks then start near each other and share the nodes they
+# load, where a caller's order (uniform samples) gives each warp 32 unrelated walks. On an H100 (2026-12-07) ordering
+# changed the bunny's and the armadillo's exact queries by +13% to -18% at 65,536 points (the sort, about 0.1 ms,
+# against what it saves) and by -16% to -53% at 1,048,576; sizes between were not measured. On this project's 2-core
+# CPU it took 10 to 40% off from 2,048 points on (docs/engine.md, "A batch query's time").
+ORDERED_POINTS = {"cuda": 1 << 17, "cpu": 1 << 11}
 
 # Size limits checked at the boundary (vertex and face indices stay within int32 arithmetic).
 MAX_VERTICES = 1 << 26
