@@ -534,6 +534,16 @@ class PointQuery:
 _ORDER_BITS = 10
 
 
+@wp.func
+def _placed_point(point: wp.vec3, offset: wp.vec3, to_local: float, turned: int, turn: wp.mat33, shift: wp.vec3):
+    """A query point in the engine's local coordinates: `(point - offset) * to_local`, turned into the field's frame
+    where a rigid frame's turn is given (DistanceField._answer)."""
+    p = (point - offset) * to_local
+    if turned != 0:
+        p = turn * p - shift
+    return p
+
+
 @wp.kernel(enable_backward=False)
 def _point_keys(points: wp.array(dtype=wp.vec3), offset: wp.vec3, to_local: float, turned: int, turn: wp.mat33,
                 shift: wp.vec3, origin: wp.vec3, inv_side: float, keys: wp.array(dtype=wp.int32),
@@ -541,15 +551,9 @@ def _point_keys(points: wp.array(dtype=wp.vec3), offset: wp.vec3, to_local: floa
     """Each point's Morton key in the domain's cube (clamped to it), placed as the query kernel places it, and its
     index, for the sort that orders a batch."""
     i = wp.tid()
-    p = (points[i] - offset) * to_local
-    if turned != 0:
-        p = turn * p - shift
-    top = float((1 << _ORDER_BITS) - 1)
-    g = (p - origin) * (inv_side * float(1 << _ORDER_BITS))
-    x = int(wp.clamp(g[0], 0.0, top))
-    y = int(wp.clamp(g[1], 0.0, top))
-    z = int(wp.clamp(g[2], 0.0, top))
-    keys[i] = wp.int32(morton3(x, y, z))
+    p = _placed_point(points[i], offset, to_local, turned, turn, shift)
+    cell = quantize(p, origin, inv_side * float(1 << _ORDER_BITS), 1 << _ORDER_BITS)
+    keys[i] = wp.int32(morton3(cell[0], cell[1], cell[2]))
     order[i] = i
 
 
@@ -1223,9 +1227,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
         i = wp.tid()
         if ordered != 0:  # the batch walked in its points' Morton order (PointQuery._order)
             i = order[i]
-        p = (points[i] - offset) * to_local
-        if turned != 0:  # a rigid frame's points, turned into the field's frame (DistanceField._answer)
-            p = turn * p - shift
+        p = _placed_point(points[i], offset, to_local, turned, turn, shift)
         resolution = 1 << tree.depth
         g = (p - tree.origin) / tree.cell
         top = float(resolution)

@@ -665,8 +665,7 @@ class DistanceField:
         domain = self._domain
         # the cube where the points are measured from: the field's, or where the pose has carried it
         placed, turn, shift = (domain, None, None) if pose is None else _placed(domain, pose)
-        tree = self._octree.view(domain.origin, domain.local_side)
-        bvh, sign = self._bvh.view(cut_slot), self._normals.view()
+        tree, bvh, sign = self._query_views(cut_slot)
         if mode == "adf" and bits & (OUT_CLOSEST | OUT_NORMAL):
             self._mark_medial_leaves(tree, bvh)
         band = domain.local_band(self._band)
@@ -922,15 +921,15 @@ class DistanceField:
                 self._planned = True
             self._corners.keep_frame(self._report_on_device, self._fits_at, queued=self._keep_queued)
         self._watch_plan()
-        self._keep_query_views_current()
+        self._query_views(cut_slot=1)  # made again where this frame replaced an array they hold (below)
         self._counters.last_update_wall_ms = (time.perf_counter() - wall) * 1e3
 
-    def _keep_query_views_current(self) -> None:
-        """Make the queries' kernel views again where this frame replaced an array they hold (`KeptViews`), so the
-        replaced array is freed now, not at the next query: about 10 us a frame where nothing was replaced."""
-        self._octree.view(self._domain.origin, self._domain.local_side)
-        self._bvh.view(cut_slot=1)
-        self._normals.view()
+    def _query_views(self, cut_slot: int) -> tuple:
+        """The octree, BVH and sign views a query's kernel takes. They are kept while their arrays stay the same
+        (`KeptViews`); each frame asks for them too, so that an array it replaced is freed then rather than at the
+        next query (about 8 us a frame where nothing was replaced)."""
+        return (self._octree.view(self._domain.origin, self._domain.local_side), self._bvh.view(cut_slot),
+                self._normals.view())
 
     @property
     def _relink_due(self) -> bool:
