@@ -112,23 +112,25 @@ def capped(registers):
 
 
 caps = []
-if args.registers:  # the first mesh's uniform 65,536 points, each cap in turn for several rounds
+if args.registers:  # the first mesh's uniform 65,536 points, each cap in turn for several rounds, in both orders
     mesh = np.load(args.meshes[0])
     vertices, faces = mesh["vertices"].astype(np.float32), mesh["faces"].astype(np.int32)
     field = DistanceField(vertices, faces, depth=args.depth, device=args.device)
     batch = point_sets(vertices, faces, 65_536, np.random.default_rng(1))["uniform"]
-    times = {(r, mode): [] for r in args.registers for mode in ("adf", "exact")}
+    times = {(r, mode, ordered): [] for r in args.registers for mode in ("adf", "exact") for ordered in (True, False)}
     for round_ in range(4):
         for registers in args.registers:
             capped(registers)
-            for mode in ("adf", "exact"):
-                timed(field, batch, mode, OUTPUTS["all"], True)
-                times[registers, mode] += [timed(field, batch, mode, OUTPUTS["all"], True)[0]
-                                           for _ in range(args.repeat)]
+            for mode, ordered in [(mode, ordered) for mode in ("adf", "exact") for ordered in (True, False)]:
+                timed(field, batch, mode, OUTPUTS["all"], ordered)
+                times[registers, mode, ordered] += [timed(field, batch, mode, OUTPUTS["all"], ordered)[0]
+                                                    for _ in range(args.repeat)]
     capped(0)
-    for (registers, mode), values in times.items():
-        caps.append({"registers": registers, "mode": mode, "ms": statistics.median(values)})
-        print(f"registers {registers or 'uncapped':>8} {mode:5s} all outputs 65,536 uniform: "
+    for (registers, mode, ordered), values in times.items():
+        caps.append({"registers": registers, "mode": mode, "order": "morton" if ordered else "caller",
+                     "ms": statistics.median(values)})
+        print(f"registers {registers or 'uncapped':>8} {mode:5s} {'morton' if ordered else 'caller'} order,"
+              " all outputs 65,536 uniform: "
               f"{statistics.median(values):8.3f} ms", flush=True)
 
 device = wp.get_device(args.device)
