@@ -11,6 +11,7 @@ import meshes
 import oracle
 import tolerances as tol
 from badf.server.adf import DistanceField, InvalidInputError
+from badf.server.adf._buffers import KeptLaunch
 from badf.server.adf._distance import EXACT_ROUNDING, CornerField, _settle_far_list
 from badf.server.adf._geometry import quantize
 from badf.server.adf._threads import MIN_CHUNK
@@ -141,6 +142,52 @@ def test_batches_walked_in_morton_order_answer_as_in_the_callers_order(device, s
                 for name in ALL_OUTPUTS:
                     assert np.array_equal(getattr(got, name), getattr(want, name)), (frame, count, mode, name)
     assert ordered._points.buffers.holds("query.order", 2 * len(points))  # the ordered walk ran
+
+
+def test_a_replayed_query_launch_answers_as_one_packed_anew(device):
+    """A query's launch is recorded and replayed for the next with the same arguments (`KeptLaunch`). Over a run of
+    small queries that change one thing at a time (the points, their count and dtype, the mode, the outputs), across
+    a deforming frame, a rigid frame and a trim, every answer equals, bit for bit, that of a twin whose every launch is
+    packed anew, and exact distances the oracle's."""
+    vertices, faces = meshes.load("spot")
+    rng = np.random.default_rng(21)
+    replaying, packing = (DistanceField(vertices, faces, depth=4, band=0.3, device=device) for _ in range(2))
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    one, other = rng.uniform(lo, hi, (2, 1, 3))
+    several = rng.uniform(lo, hi, (16, 3))
+    queries = [(one, "adf", ("distance",)), (one, "adf", ("distance",)), (other, "adf", ("distance",)),
+               (one, "exact", ("distance",)), (one, "exact", ALL_OUTPUTS), (several, "exact", ALL_OUTPUTS),
+               (several.astype(np.float32), "exact", ALL_OUTPUTS), (several, "adf", ("normal", "face"))]
+
+    def compare(step):
+        for points, mode, outputs in queries:
+            got = replaying.query(points, mode=mode, outputs=outputs)
+            KeptLaunch.keep = False
+            try:
+                want = packing.query(points, mode=mode, outputs=outputs)
+            finally:
+                KeptLaunch.keep = True
+            for name in outputs:
+                assert np.array_equal(getattr(got, name), getattr(want, name)), (step, len(points), mode, name)
+        return got
+
+    compare("first frame")
+    bent = vertices + 0.01 * np.sin(7.0 * vertices[:, [1, 2, 0]])
+    turn = trimesh.transformations.rotation_matrix(0.4, [0.0, 1.0, 1.0])[:3, :3]
+    for step, frame in (("deforming frame", bent), ("rigid frame", bent @ turn.T + 0.1)):
+        for field in (replaying, packing):
+            field.update(frame)
+        compare(step)
+    assert replaying.info()["pose"] is not None
+    for field in (replaying, packing):
+        field.trim()
+    result = compare("after a trim")
+    assert replaying._points._launch.replays >= 4
+    truth = oracle.signed_distance(several, bent @ turn.T + 0.1, faces)
+    exact = replaying.query(several, mode="exact")
+    allowed = tol.EXACT_DISTANCE * oracle.bbox_diagonal(vertices)
+    assert np.max(np.abs(exact.distance - np.clip(truth, -0.3, 0.3))) <= allowed
+    assert result.normal.shape == (16, 3)
 
 
 @pytest.mark.parametrize("shape", ["slab", "cylinder"])

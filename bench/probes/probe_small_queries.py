@@ -4,8 +4,10 @@ work sets rather than the kernel's.
     python3 bench/probes/probe_small_queries.py MESH.npz [--device cuda:0] [--repeat K] [--json]
 
 Prints, for 1, 16 and 256 points near the mesh, ADF and exact, the median and 90th percentile wall time of K
-queries after warm-up, with the queries' kernel views kept (`KeptViews`) and made anew, alternating in blocks of 20
-queries in one process.
+queries after warm-up, in three variants alternating in blocks of 20 queries in one process: "kept" (the engine:
+the kernel's views kept, `KeptViews`, and its launch replayed, `KeptLaunch`), "packed" (views kept, each launch
+packed anew) and "made" (views made and launch packed anew). An older engine without `KeptLaunch` runs the
+first and last only.
 """
 
 import argparse
@@ -17,7 +19,19 @@ import numpy as np
 import warp as wp
 
 from badf.server.adf import DistanceField
+from badf.server.adf import _buffers
 from badf.server.adf._buffers import KeptViews
+
+KeptLaunch = getattr(_buffers, "KeptLaunch", None)
+VARIANTS = {"kept": (True, True), "packed": (True, False), "made": (False, False)}
+if KeptLaunch is None:
+    del VARIANTS["packed"]
+
+
+def use(variant):
+    KeptViews.keep, launches = VARIANTS[variant]
+    if KeptLaunch is not None:
+        KeptLaunch.keep = launches
 
 parser = argparse.ArgumentParser()
 parser.add_argument("mesh")
@@ -41,17 +55,18 @@ for count in (1, 16, 256):
     for mode in ("adf", "exact"):
         for _ in range(20):
             field.query(points, mode=mode)
-        walls = {True: [], False: []}
-        for block in range(2 * (args.repeat // 20)):
-            KeptViews.keep = block % 2 == 0
+        walls = {variant: [] for variant in VARIANTS}
+        for block in range(len(VARIANTS) * (args.repeat // 20)):
+            variant = list(VARIANTS)[block % len(VARIANTS)]
+            use(variant)
             for _ in range(20):
                 start = time.perf_counter()
                 field.query(points, mode=mode)
-                walls[KeptViews.keep].append((time.perf_counter() - start) * 1e6)
-        KeptViews.keep = True
-        for keep, values in walls.items():
+                walls[variant].append((time.perf_counter() - start) * 1e6)
+        use("kept")
+        for variant, values in walls.items():
             values.sort()
-            rows.append({"points": count, "mode": mode, "views": "kept" if keep else "made",
+            rows.append({"points": count, "mode": mode, "views": variant,
                          "median_us": statistics.median(values), "p90_us": values[int(0.9 * len(values))]})
 name = wp.get_device(args.device).name
 if args.json:
@@ -59,5 +74,5 @@ if args.json:
 else:
     print(f"{name}, {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC, {args.repeat} queries each")
     for row in rows:
-        print(f"{row['points']:>5d} points {row['mode']:5s} views {row['views']}: median {row['median_us']:8.1f} us"
+        print(f"{row['points']:>5d} points {row['mode']:5s} {row['views']:6s}: median {row['median_us']:8.1f} us"
               f"  p90 {row['p90_us']:8.1f} us")

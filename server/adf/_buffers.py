@@ -297,3 +297,52 @@ class KeptViews:
 
     def clear(self) -> None:
         self._kept.clear()
+
+
+class KeptLaunch:
+    """A kernel launch recorded once (Warp's `record_cmd`) and replayed while its arguments stay the same: each
+    array and struct by identity, each number by value. Packing a launch's arguments goes through Warp's Python for
+    each of them, a fifth of a one-point query's time on this project's CPU; a replay hands Warp the packed ones. A
+    kept launch holds its arguments, so an array replaced since stays alive until the next launch is recorded:
+    `clear` (a trim) lets go of them."""
+
+    # False: every launch packed anew (for bench/probes/probe_small_queries.py to compare)
+    keep = True
+
+    def __init__(self):
+        self._kept: tuple[tuple, object] | None = None
+        self.replays = 0
+
+    def launch(self, kernel, dim: int, inputs: list, outputs: list, device) -> None:
+        """`wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device)`, replayed where the last one
+        had the same kernel, dimension and arguments."""
+        arguments = (kernel, dim, device, *inputs, *outputs)
+        kept = self._kept
+        if kept is not None and KeptLaunch.keep and _same_arguments(kept[0], arguments):
+            kept[1].launch()
+            self.replays += 1
+            return
+        self._kept = None  # let go of the old arguments first
+        recorded = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, record_cmd=True)
+        recorded.launch()
+        self._kept = (arguments, recorded)
+
+    def let_go_unless(self, arguments: tuple) -> None:
+        """Let go of the kept launch unless each of these objects is among its arguments."""
+        if self._kept is not None and not all(any(a is b for b in self._kept[0]) for a in arguments):
+            self._kept = None
+
+    def clear(self) -> None:
+        self._kept = None
+
+
+def _same_arguments(before: tuple, now: tuple) -> bool:
+    """Each argument the same object, or a number of the same type and value."""
+    if len(before) != len(now):
+        return False
+    for a, b in zip(before, now):
+        if a is b:
+            continue
+        if type(a) is not type(b) or not isinstance(a, (int, float, np.number)) or a != b:
+            return False
+    return True

@@ -170,6 +170,7 @@ class Bvh:
         self._cuts: dict[int, wp.array] = {}
         # the walks cut, the frame's (zeroed by each frame, read with its report) and the last query's
         self.winding_cuts = b.array("bvh.winding_cuts", 2, wp.int32)
+        self.query_cuts = self.winding_cuts[1:2]  # zeroed by each query (a view made once)
         # measure_spread's sums, this frame's (read with its report) and the linking frame's (zero: never measured)
         self.leaf_spread = b.array("bvh.leaf_spread", 4, wp.int64)
         self._views = KeptViews(BvhView)

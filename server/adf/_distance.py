@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from badf.server.adf._buffers import DeviceBuffers, HostStaged, SharedScratch, SideStream
+from badf.server.adf._buffers import DeviceBuffers, HostStaged, KeptLaunch, SharedScratch, SideStream
 from badf.server.adf._bvh import (
     UNLIMITED_VISITS,
     BvhView,
@@ -51,7 +51,7 @@ from badf.server.adf._sign import (
     lends_no_normal,
     wound_side,
 )
-from badf.server.adf._threads import COUNTS_ROOM, launch_per_item
+from badf.server.adf._threads import COUNTS_ROOM, MIN_CHUNK, launch_per_item
 from badf.server.adf._tolerances import ORDERED_POINTS, STAGED_POINTS, SURFACE_SNAP
 
 # No fused multiply-adds in this module's kernels (nor in the point queries'): with them, the compiler may
@@ -443,6 +443,10 @@ class PointQuery:
         # points on an H100; bench/probes/probe_query_order.py, docs/engine.md "A batch query's time")
         self.ordered_modes: set[str] = {"exact"}
         self.ordered_from = ORDERED_POINTS["cuda" if self.device.is_cuda else "cpu"]
+        # a batch's launch, replayed for the next batch with the same arguments (small queries in a loop), and the
+        # points' placing, kept as the same objects while their values hold so that the launch can be replayed
+        self._launch = KeptLaunch()
+        self._placing: tuple[tuple, list] | None = None
 
     def _stage(self, name: str, count: int, dtype) -> wp.array | None:
         """A pinned host array of at least `count` elements for a batch on CUDA of at most STAGED_POINTS, grown
@@ -458,8 +462,27 @@ class PointQuery:
         return arr
 
     def give_back(self) -> None:
-        """Free the pinned host buffers (a trim); the next batch makes them again."""
+        """Free the pinned host buffers and let go of the kept launch's arrays (a trim); the next batch makes them
+        again."""
         self._staged.clear()
+        self._launch.clear()
+
+    def let_go_unless(self, arguments: tuple) -> None:
+        """Let go of the kept launch's arguments unless it takes each of these (a frame's views and corner arrays):
+        an array a frame replaced is then freed at once, and a frame that replaced none keeps the launch."""
+        self._launch.let_go_unless(arguments)
+
+    def _placed(self, offset: np.ndarray, scale: float, turn: np.ndarray | None, shift: np.ndarray | None) -> list:
+        """The query kernel's placing arguments (offset, to_local, turned, turn, shift): the last batch's objects
+        where the values are the same."""
+        key = (offset.tobytes(), float(scale), None if turn is None else turn.tobytes(),
+               None if shift is None else shift.tobytes())
+        if self._placing is None or self._placing[0] != key:
+            placing = [wp.vec3(*offset), float(scale), 0 if turn is None else 1,
+                       wp.mat33(*(np.eye(3) if turn is None else turn).reshape(-1)),
+                       wp.vec3(*(np.zeros(3) if shift is None else shift))]
+            self._placing = (key, placing)
+        return self._placing[1]
 
     def _order(self, points: wp.array, n: int, placing: list, octree: OctreeView, side: float,
                exact: bool) -> wp.array | None:
@@ -492,28 +515,29 @@ class PointQuery:
         face = b.ensure("query.face", n if outputs & OUT_FACE else 1, wp.int32, headroom=True)
         device_points = b.ensure("query.points", n, wp.vec3, headroom=True)
         stage = self._stage("points", n, wp.vec3)
-        if stage is None:
-            wp.copy(device_points, wp.array(points, dtype=wp.vec3, device="cpu", copy=False), count=n)
-        else:
-            stage.numpy()[:n] = points  # float64 points rounded to float32 here, as Warp's own conversion does
+        # float64 points are rounded to float32 in these writes, as Warp's own conversion does
+        if stage is not None:
+            stage.numpy()[:n] = points
             wp.copy(device_points, stage, count=n)
-        # shared out over the CPU's cores by points: the points and the outputs asked for (the others hold one slot)
-        asked = [arr for arr, bit in ((distance, OUT_DISTANCE), (closest, OUT_CLOSEST), (normal, OUT_NORMAL),
-                                      (face, OUT_FACE)) if outputs & bit]
-        placing = [wp.vec3(*offset), scale, 0 if turn is None else 1,
-                   wp.mat33(*(np.eye(3) if turn is None else turn).reshape(-1)),
-                   wp.vec3(*(np.zeros(3) if shift is None else shift))]
+        elif self.device.is_cpu:  # written where the kernel reads them
+            device_points.numpy()[:n] = points
+        else:
+            wp.copy(device_points, wp.array(points, dtype=wp.vec3, device="cpu", copy=False), count=n)
+        placing = self._placed(offset, scale, turn, shift)
         order = self._order(device_points, n, placing, octree, side, exact)
-        launch_per_item(
-            query_kernel(sign.method),
-            n,
-            inputs=[device_points, order, 0 if order is None else 1, *placing, 1 if exact else 0, outputs, octree,
-                    corner_value, corner_leaf, bvh, sign, 1.0 / side, band or 0.0],
-            outputs=[distance, closest, normal, face],
-            # in order, a thread reads its point and writes its outputs where the order says: only the order is cut
-            sliced=(device_points, *asked) if order is None else (order,),
-            device=self.device,
-        )
+        kernel = query_kernel(sign.method)
+        inputs = [device_points, order, 0 if order is None else 1, *placing, 1 if exact else 0, outputs, octree,
+                  corner_value, corner_leaf, bvh, sign, 1.0 / side, band or 0.0]
+        if self.device.is_cuda or n < 2 * MIN_CHUNK:  # one launch, as launch_per_item makes it
+            self._launch.launch(kernel, n, inputs, [distance, closest, normal, face], self.device)
+        else:
+            # shared out over the CPU's cores by points: the points and the outputs asked for (the others hold one
+            # slot); in order, a thread reads its point and writes its outputs where the order says: only the order
+            # is cut
+            asked = [arr for arr, bit in ((distance, OUT_DISTANCE), (closest, OUT_CLOSEST), (normal, OUT_NORMAL),
+                                          (face, OUT_FACE)) if outputs & bit]
+            launch_per_item(kernel, n, inputs=inputs, outputs=[distance, closest, normal, face],
+                            sliced=(device_points, *asked) if order is None else (order,), device=self.device)
         staged = []
         for name, bit, arr, dtype in (
             ("distance", OUT_DISTANCE, distance, wp.float32),
@@ -523,6 +547,9 @@ class PointQuery:
         ):
             if outputs & bit:
                 host = self._stage(name, n, dtype)
+                if host is None and self.device.is_cpu:  # read where the kernel wrote them
+                    results[name][start : start + n] = arr.numpy()[:n]
+                    continue
                 if host is None:
                     host = wp.array(results[name][start : start + n], dtype=dtype, device="cpu", copy=False)
                 else:

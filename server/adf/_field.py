@@ -15,6 +15,7 @@ from typing import Literal
 import numpy as np
 import warp as wp
 
+from badf.server._environment import cpu_threads_setting
 from badf.server.adf._buffers import DeviceBuffers, HostStaged, SideStream
 from badf.server.adf._bvh import SPREAD_UNIT, TREE_DUE, TREE_MISFITS, Bvh, spread_units, tree_fit
 from badf.server.adf._bvh_shape import Shape, resolve_shape, sah_shape
@@ -68,7 +69,6 @@ from badf.server.adf._sign import (
     surface_enters_solid,
     with_fans,
 )
-from badf.server.adf._threads import cpu_threads
 from badf.server.adf._tolerances import (
     CENTRE_SNAP,
     DOMAIN_MARGIN,
@@ -124,7 +124,7 @@ def _on_device(method):
     @functools.wraps(method)
     def locked(self, *args, **kwargs):
         if self._device.is_cpu:
-            cpu_threads()
+            cpu_threads_setting()
         with _device_lock(self._device):
             return method(self, *args, **kwargs)
 
@@ -260,9 +260,10 @@ class _Domain:
             return float(band)
         return float(np.float32(local)) / self.scale
 
-    @property
+    @functools.cached_property
     def origin(self) -> wp.vec3:
-        """The cube's lowest corner in local coordinates."""
+        """The cube's lowest corner in local coordinates (one object per domain, so that the views made of it are
+        kept: `KeptViews`)."""
         half = self.local_side / 2.0
         return wp.vec3(-half, -half, -half)
 
@@ -361,7 +362,7 @@ class DistanceField:
         self._device = _resolve_device(device)
         self._bvh_shape = resolve_shape(self._bvh_requested, self._device.is_cpu)
         if self._device.is_cpu:
-            cpu_threads()  # a bad BADF_CPU_THREADS, refused before anything is built
+            cpu_threads_setting()  # a bad BADF_CPU_THREADS, refused before anything is built
 
         # vertices no face uses (left over from editing, or parked far away) have no say in the domain
         used = np.zeros(len(v), dtype=bool)
@@ -636,7 +637,7 @@ class DistanceField:
         names = check_outputs(outputs)
         p = as_points(points)
         start_time = time.perf_counter()
-        self._bvh.winding_cuts[1:2].zero_()  # the walks this query cuts (stats()["last_query_walks_cut"])
+        self._bvh.query_cuts.zero_()  # the walks this query cuts (stats()["last_query_walks_cut"])
         result = self._answer(p, mode, names, self._pose, cut_slot=1)
         self._counters.queries += 1
         self._counters.query_points += len(p)
@@ -921,7 +922,9 @@ class DistanceField:
                 self._planned = True
             self._corners.keep_frame(self._report_on_device, self._fits_at, queued=self._keep_queued)
         self._watch_plan()
-        self._query_views(cut_slot=1)  # made again where this frame replaced an array they hold (below)
+        # made again where this frame replaced an array they hold (below), and the kept query launch let go of
+        # where it holds another
+        self._points.let_go_unless((*self._query_views(cut_slot=1), self._corners.value, self._corners.leaf))
         self._counters.last_update_wall_ms = (time.perf_counter() - wall) * 1e3
 
     def _query_views(self, cut_slot: int) -> tuple:
