@@ -108,10 +108,10 @@ SEARCH_BLOCK_DIM = 64
 SIGN_BLOCK_DIM = 64
 SEARCH_MAX_REGISTERS = 64
 SIGN_MAX_REGISTERS = 64
-# The point-query kernel's cap (None: the compiler's choice, 255 registers on an H100). At 128, an exact batch of
-# 65,536 uniform points with all four outputs, in Morton order, took 4.03 ms against 4.34 uncapped on the bunny (H100,
-# 2026-12-07 13:20) and 2.94 against 3.21 on the armadillo (another H100, 15:22); 96 was between them, and ADF
-# batches the same (docs/engine.md, "A batch query's time").
+# The point-query kernel's cap (None: the compiler's choice, 255 registers on an H100). At 128 no batch measured was
+# slower: 65,536 uniform points with all four outputs, exact in the caller's order, took 3.09 against 4.14 ms on the
+# bunny and 1.95 against 2.27 on the armadillo (one H100, 2026-12-07 15:39), 5 to 11% less in Morton order (three
+# H100s), ADF up to 13% less; 96 was between them (docs/engine.md, "A batch query's time").
 QUERY_MAX_REGISTERS: int | None = 128
 
 
