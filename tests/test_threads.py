@@ -107,6 +107,34 @@ def test_a_thread_count_that_is_not_one_is_refused(monkeypatch):
     assert _threads.chunks_for(100, 5) == 1 and _threads.chunks_for(100_000, 1) == 1
 
 
+@pytest.mark.parametrize("sign", ["auto", "winding"])
+def test_small_exact_batches_are_shared_out_and_answer_as_one_launch(monkeypatch, sign):
+    """An exact batch is cut into chunks of MIN_EXACT_CHUNK points (each point walks the BVH), so a few hundred points
+    already share the cores, with the answers of one launch bit for bit and the oracle's distances; an ADF batch of
+    as many stays one launch (its points read the octree only)."""
+    pools = []
+    executor = _threads.shared_pool
+    monkeypatch.setattr(_threads, "shared_pool", lambda threads: pools.append(threads) or executor(threads))
+    vertices, faces = meshes.load("spot")
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    points = np.random.default_rng(8).uniform(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), (600, 3))
+    field = DistanceField(vertices, faces, depth=4, sign=sign, device="cpu")
+    outputs = ("distance", "closest_point", "normal", "face")
+
+    monkeypatch.setenv("BADF_CPU_THREADS", "1")
+    whole = field.query(points, mode="exact", outputs=outputs)
+    monkeypatch.setenv("BADF_CPU_THREADS", "3")
+    pools.clear()  # the registration's launches
+    field.query(points, outputs=outputs)
+    assert not pools  # ADF: one launch
+    shared = field.query(points, mode="exact", outputs=outputs)
+    assert pools == [3]
+    for name in outputs:
+        np.testing.assert_array_equal(getattr(shared, name), getattr(whole, name))
+    truth = oracle.signed_distance(points, vertices, faces)
+    assert np.max(np.abs(shared.distance - truth)) <= tol.EXACT_DISTANCE * oracle.bbox_diagonal(vertices)
+
+
 @wp.kernel(enable_backward=False)
 def _record_items(offset: int, seen: wp.array(dtype=wp.int32), flag: wp.array(dtype=wp.int32)):
     item = offset + wp.tid()

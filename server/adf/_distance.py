@@ -51,7 +51,7 @@ from badf.server.adf._sign import (
     lends_no_normal,
     wound_side,
 )
-from badf.server.adf._threads import COUNTS_ROOM, MIN_CHUNK, launch_per_item
+from badf.server.adf._threads import COUNTS_ROOM, MIN_EXACT_CHUNK, launch_per_item, shares_out
 from badf.server.adf._tolerances import ORDERED_POINTS, STAGED_POINTS, SURFACE_SNAP
 
 # No fused multiply-adds in this module's kernels (nor in the point queries'): with them, the compiler may
@@ -528,7 +528,9 @@ class PointQuery:
         kernel = query_kernel(sign.method)
         inputs = [device_points, order, 0 if order is None else 1, *placing, 1 if exact else 0, outputs, octree,
                   corner_value, corner_leaf, bvh, sign, 1.0 / side, band or 0.0]
-        if self.device.is_cuda or n < 2 * MIN_CHUNK:  # one launch, as launch_per_item makes it
+        # exact points walk the BVH each, so on the CPU smaller batches of them are shared out over the cores
+        min_chunk = MIN_EXACT_CHUNK if exact else None
+        if not shares_out(self.device, n, min_chunk=min_chunk):
             self._launch.launch(kernel, n, inputs, [distance, closest, normal, face], self.device)
         else:
             # shared out over the CPU's cores by points: the points and the outputs asked for (the others hold one
@@ -537,7 +539,8 @@ class PointQuery:
             asked = [arr for arr, bit in ((distance, OUT_DISTANCE), (closest, OUT_CLOSEST), (normal, OUT_NORMAL),
                                           (face, OUT_FACE)) if outputs & bit]
             launch_per_item(kernel, n, inputs=inputs, outputs=[distance, closest, normal, face],
-                            sliced=(device_points, *asked) if order is None else (order,), device=self.device)
+                            sliced=(device_points, *asked) if order is None else (order,), min_chunk=min_chunk,
+                            device=self.device)
         staged = []
         for name, bit, arr, dtype in (
             ("distance", OUT_DISTANCE, distance, wp.float32),

@@ -19,8 +19,11 @@ import warp as wp
 from badf.server._environment import cpu_threads_setting
 
 # Items per chunk below which a launch is not shared out (a launch costs tens of microseconds), and chunks per
-# thread, so that chunks of long walks (corners far from the surface) do not leave the other threads idle.
+# thread, so that chunks of long walks (corners far from the surface) do not leave the other threads idle. An
+# exact query's point walks the BVH (about 10 us for the bunny on this project's CPU, a winding walk included), so
+# exact batches are shared out from chunks of MIN_EXACT_CHUNK points.
 MIN_CHUNK = 2048
+MIN_EXACT_CHUNK = 256
 CHUNKS_PER_THREAD = 4
 MAX_CHUNKS = 256
 COUNTS_ROOM = MAX_CHUNKS + 1  # a count per chunk, and a zero
@@ -64,16 +67,32 @@ def shared_pool(threads: int) -> concurrent.futures.ThreadPoolExecutor:
         return _pool
 
 
-def chunks_for(capacity: int, threads: int | None = None) -> int:
-    """How many chunks a launch over `capacity` items is cut into on the CPU back-end (1: one launch)."""
+def chunks_for(capacity: int, threads: int | None = None, min_chunk: int | None = None) -> int:
+    """How many chunks a launch over `capacity` items is cut into on the CPU back-end (1: one launch), each of at
+    least `min_chunk` items (default MIN_CHUNK)."""
     threads = cpu_threads() if threads is None else threads
     if threads <= 1:
         return 1
-    return max(1, min(CHUNKS_PER_THREAD * threads, MAX_CHUNKS, capacity // MIN_CHUNK))
+    return max(1, min(CHUNKS_PER_THREAD * threads, MAX_CHUNKS, capacity // (min_chunk or MIN_CHUNK)))
+
+
+def _launch_threads(device: wp.Device, dim: int, sliced, min_chunk: int | None) -> int:
+    """The threads a launch over `dim` items is shared out over: 1 on CUDA, for a kernel that is not to be shared
+    out, and below two chunks' items, whatever the setting (so a small query need not read it)."""
+    if not device.is_cpu or sliced is None or dim < 2 * (min_chunk or MIN_CHUNK):
+        return 1
+    return cpu_threads()
+
+
+def shares_out(device, dim: int, *, min_chunk: int | None = None) -> bool:
+    """Whether `launch_per_item` cuts a launch over `dim` items into chunks (else it is one `wp.launch`)."""
+    device = wp.get_device(device)
+    return chunks_for(dim, _launch_threads(device, dim, (), min_chunk), min_chunk) > 1
 
 
 def launch_per_item(kernel, dim: int, inputs: list, outputs: list, *, sliced: tuple[wp.array, ...] | None,
-                    counts: wp.array | None = None, offset_at: int | None = None, device, **launch_options) -> None:
+                    counts: wp.array | None = None, offset_at: int | None = None, min_chunk: int | None = None,
+                    device, **launch_options) -> None:
     """`wp.launch(kernel, dim=dim, inputs, outputs, device, **launch_options)` for a kernel whose thread i handles
     item i and writes only item i's slots, or a flag that every thread writing it sets to the same value. On the CPU
     back-end the items are cut into chunks launched from a pool of threads, with the arrays in `sliced` (those with
@@ -82,11 +101,11 @@ def launch_per_item(kernel, dim: int, inputs: list, outputs: list, *, sliced: tu
     (items, count, capacity = dim), it handles the items below min(count[0], capacity), and each chunk gets its own
     count (written into `counts`) and capacity. With `offset_at`, the argument there (of inputs, then outputs) is
     an int that the kernel adds to its thread index to find its item, and each chunk gets it plus its first item.
-    Returns once every chunk has run; a chunk's error is raised here."""
+    Chunks hold at least `min_chunk` items (default MIN_CHUNK). Returns once every chunk has run; a chunk's error is
+    raised here."""
     device = wp.get_device(device)
-    # fewer than two chunks' items stay one launch, whatever the threads (a small query need not read the setting)
-    threads = cpu_threads() if device.is_cpu and sliced is not None and dim >= 2 * MIN_CHUNK else 1
-    chunks = chunks_for(dim, threads)
+    threads = _launch_threads(device, dim, sliced, min_chunk)
+    chunks = chunks_for(dim, threads, min_chunk)
     if chunks <= 1:
         wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, **launch_options)
         return
