@@ -223,6 +223,26 @@ def _normals_are_unit_or_zero(normal: np.ndarray) -> bool:
     return bool(np.all((np.abs(length - 1.0) < 1e-4) | (length == 0.0)))
 
 
+def _oracle_sides(points: np.ndarray, vertices: np.ndarray, faces, truth: np.ndarray, *, signed: bool):
+    """(the oracle's signed distances, where its side is sure): a side counts where the winding number is more
+    than WINDING_CONFIDENCE from 1/2 and the point more than SIGN_MARGIN diagonals from the surface."""
+    near = truth <= tol.SIGN_MARGIN * oracle.bbox_diagonal(vertices)
+    if not signed:
+        return truth, ~near
+    w = oracle.winding_number(points, vertices, faces)
+    return np.where(np.abs(w) > 0.5, -truth, truth), (np.abs(np.abs(w) - 0.5) > tol.WINDING_CONFIDENCE) & ~near
+
+
+def wrong_sides(distance_field, vertices, faces, points: np.ndarray) -> np.ndarray:
+    """The indices of the points whose exact answer is on the other side from the oracle's, where its side is sure."""
+    vertices = np.asarray(vertices, np.float64)
+    truth = oracle.nearest(points, vertices, faces).distance
+    truth_signed, confident = _oracle_sides(points, vertices, faces, truth,
+                                            signed=distance_field.info()["sign"] != "none")
+    exact = distance_field.query(points, mode="exact").distance
+    return np.flatnonzero(confident & ((exact < 0) != (truth_signed < 0)))
+
+
 def compare_with_oracle(distance_field, vertices, faces, points: np.ndarray, *, solid: bool) -> dict:
     """Exact and ADF answers at `points` against the oracle, as ratios to their bounds (<= 1 passes).
 
@@ -233,13 +253,7 @@ def compare_with_oracle(distance_field, vertices, faces, points: np.ndarray, *, 
     truth = oracle.nearest(points, vertices, faces).distance
     signed = distance_field.info()["sign"] != "none"
     diag = oracle.bbox_diagonal(vertices)
-    if signed:
-        w = oracle.winding_number(points, vertices, faces)
-        truth_signed = np.where(np.abs(w) > 0.5, -truth, truth)
-        confident = (np.abs(np.abs(w) - 0.5) > tol.WINDING_CONFIDENCE) & (truth > tol.SIGN_MARGIN * diag)
-    else:
-        truth_signed = truth
-        confident = truth > tol.SIGN_MARGIN * diag
+    truth_signed, confident = _oracle_sides(points, vertices, faces, truth, signed=signed)
     exact = distance_field.query(points, mode="exact", outputs=ALL_OUTPUTS)
     adf = distance_field.query(points, mode="adf", outputs=ALL_OUTPUTS)
     exact_allowed = tol.EXACT_DISTANCE * diag + tol.FLOAT32_RELATIVE * truth
