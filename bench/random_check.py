@@ -4,7 +4,7 @@
 
 Each case is drawn from its seed alone: a mesh (a piece of a shared mesh, a noisy or holed sphere, a soup with
 repeated corners, a sphere with duplicated and flipped faces, a folded sheet, a sphere scaled and moved far from
-the origin), options (depth 3 to 6, every sign method, refinement, halo, coherence, now and then a band, a
+the origin), options (depth 3 to 6, or as `--depths` says, every sign method, refinement, halo, coherence, now and then a band, a
 region or the SAH-shaped BVH) and up to
 three frames (a wobble, jitter from 1e-6 to 0.1 of the size, a throw of up to 1000 sizes, a collapse onto a plane,
 a scaling, or the same frame again), with float32 or float64 input, and far corners searched by subtree
@@ -38,11 +38,12 @@ import numpy as np
 
 from badf.bench import _cases
 from badf.bench import _oracle as oracle
-from badf.bench._common import bench_device_name, start_warp, timestamp
+from badf.bench._common import BenchFlagError, bench_device_name, start_warp, timestamp
 
 MESH_KINDS = ("shared piece", "noisy sphere", "soup", "holed sphere", "duplicates", "folded sheet", "far sphere")
 MOTIONS = ("wobble", "jitter", "throw", "collapse", "scale", "same")
 SHARED_MESHES = ("spot", "fandisk", "stanford-bunny", "homer", "armadillo-86k")
+DEPTHS = (3, 6)  # the octree depths drawn from, both included (--depths)
 POINTS = 60  # of each kind: uniform, near the surface, on it (half), and eight far away
 
 
@@ -123,11 +124,11 @@ def random_motion(vertices: np.ndarray, rng: np.random.Generator) -> tuple[str, 
 FAR_CELLS = (None, None, 0, 2, 12)
 
 
-def random_options(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> dict:
+def random_options(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray, depths: tuple[int, int] = DEPTHS) -> dict:
     """The field's options for a mesh within [lo, hi]: a band in a quarter of cases, a region (a box within or
     across the mesh's bounds) in a fifth, each of the BVH's shapes asked for in three tenths (auto's in the rest)."""
     size = float(np.linalg.norm(hi - lo))
-    depth = int(rng.integers(3, 7))
+    depth = int(rng.integers(depths[0], depths[1] + 1))
     sign = str(rng.choice(["auto", "auto", "winding", "none", "pseudonormal"]))
     options = dict(depth=depth, sign=sign,
                    refine=str(rng.choice(["surface", "centroid"])), halo=int(rng.integers(0, 3)),
@@ -173,11 +174,11 @@ def slice_trouble(field, vertices: np.ndarray, rng: np.random.Generator) -> str 
     return None
 
 
-def check_case(seed: int, device: str, shared: dict) -> dict:
+def check_case(seed: int, device: str, shared: dict, depths: tuple[int, int] = DEPTHS) -> dict:
     """Draw case `seed`, run it, and compare with the oracle: its record, with "problem" set where it failed."""
     rng = np.random.default_rng(seed)
     kind, vertices, faces = random_mesh(rng, shared)
-    options = random_options(rng, vertices.min(axis=0), vertices.max(axis=0))
+    options = random_options(rng, vertices.min(axis=0), vertices.max(axis=0), depths)
     frames = [random_motion(vertices, rng) for _ in range(int(rng.integers(0, 4)))]
     given = vertices.astype(rng.choice([np.float32, np.float64]))
     far = FAR_CELLS[int(rng.integers(0, len(FAR_CELLS)))]
@@ -244,7 +245,7 @@ def signs_estimated(field, vertices: np.ndarray, faces: np.ndarray, points: np.n
     return cut
 
 
-def check(*, seconds: float, cases: int | None, seed: int, device: str) -> dict:
+def check(*, seconds: float, cases: int | None, seed: int, device: str, depths: tuple[int, int] = DEPTHS) -> dict:
     """Cases seed, seed + 1, ... until `seconds` have passed or `cases` have run: counts and the problems found."""
     shared = shared_meshes()
     # the engine's warning for every case that forces pseudonormals on an open mesh says nothing new here
@@ -252,7 +253,7 @@ def check(*, seconds: float, cases: int | None, seed: int, device: str) -> dict:
     start = time.perf_counter()
     records, n, compared, refused, estimated = [], 0, 0, 0, 0
     while time.perf_counter() - start < seconds and (cases is None or n < cases):
-        record = check_case(seed + n, device, shared)
+        record = check_case(seed + n, device, shared, depths)
         n += 1
         compared += "measured" in record
         refused += "refused" in record
@@ -261,7 +262,7 @@ def check(*, seconds: float, cases: int | None, seed: int, device: str) -> dict:
             records.append(record)
             print("problem:", json.dumps(record), flush=True)
     return {"benchmark": "random_check", "date": timestamp(), "device": bench_device_name(device),
-            "first_seed": seed, "cases": n, "compared": compared, "refused": refused,
+            "first_seed": seed, "depths": list(depths), "cases": n, "compared": compared, "refused": refused,
             "cases_with_signs_estimated": estimated,
             "seconds": round(time.perf_counter() - start, 1), "shared_meshes": sorted(shared), "problems": records}
 
@@ -271,13 +272,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cases", type=int, default=None, help="stop after this many cases (no limit)")
     parser.add_argument("--seed", type=int, default=0, help="the first case's seed; case k is seed + k (0)")
     parser.add_argument("--device", default=None, help="cpu, cuda:0, ... (the first GPU if there is one, else cpu)")
+    parser.add_argument("--depths", type=int, nargs=2, default=list(DEPTHS), metavar=("LO", "HI"),
+                        help="draw octree depths from LO to HI (3 6); deeper fields take longer and more memory")
     parser.add_argument("--out", default=None, help="write the counts and problems as JSON here")
 
 
 def run(args: argparse.Namespace) -> int:
     """Exit status 1 where a problem was found."""
+    if args.depths[0] > args.depths[1]:  # each within 1..10 is checked with every bench's flags (_cli.py)
+        raise BenchFlagError(f"--depths takes LO before HI, got {args.depths[0]} {args.depths[1]}")
     device = start_warp(args.device)
-    result = check(seconds=args.seconds, cases=args.cases, seed=args.seed, device=device)
+    result = check(seconds=args.seconds, cases=args.cases, seed=args.seed, device=device, depths=tuple(args.depths))
     print(f"{result['cases']} cases in {result['seconds']} s on {result['device']} ({result['compared']} compared with "
           f"the oracle, {result['refused']} refused, {result['cases_with_signs_estimated']} with sides estimated by walks cut "
           f"at their budget): {len(result['problems'])} problems")

@@ -67,3 +67,22 @@ def test_a_wrong_side_is_a_problem_unless_its_walk_was_cut(device):
     assert _cases.wrong_sides(sphere, vertices, faces, points).tolist() == []
     assert _cases.wrong_sides(flipped, vertices, faces, points).tolist() == [1]
     assert random_check.signs_estimated(flipped, vertices, faces, points) == []
+
+
+def test_depths_are_drawn_from_the_range_asked_for(device, capsys):
+    """`--depths LO HI` (default 3 6, the draws of every seed before it) moves the check to deeper fields; LO past HI
+    is refused before anything runs."""
+    import argparse
+
+    from badf.bench import _cli
+
+    rng = np.random.default_rng(0)
+    drawn = {random_check.random_options(rng, np.zeros(3), np.ones(3), (7, 9))["depth"] for _ in range(60)}
+    assert drawn == {7, 8, 9}
+    assert random_check.random_options(np.random.default_rng(5), np.zeros(3), np.ones(3))["depth"] == \
+        int(np.random.default_rng(5).integers(3, 7))  # the default draws as before --depths
+    result = random_check.check(seconds=120.0, cases=2, seed=7, device=device, depths=(8, 8))
+    assert result["depths"] == [8, 8] and result["cases"] == 2 and result["problems"] == []
+    flags = argparse.Namespace(name="random-check", rest=["--depths", "6", "4", "--cases", "1"])
+    assert _cli.run(flags) == 2
+    assert "--depths takes LO before HI" in capsys.readouterr().err
