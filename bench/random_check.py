@@ -6,8 +6,9 @@ Each case is drawn from its seed alone: a mesh (a piece of a shared mesh, a nois
 repeated corners, a sphere with duplicated and flipped faces, a folded sheet, a sphere scaled and moved far from
 the origin), options (depth 3 to 6, or as `--depths` says, every sign method, refinement, halo, coherence, now and
 then a band, a region or the SAH-shaped BVH) and up to three frames (a wobble, jitter from 1e-6 to 0.1 of the
-size, a throw of up to 1000 sizes, a collapse onto a plane, a scaling, or the same frame again), with float32 or float64 input, and far corners searched by subtree
-(CornerField.far_cells, which only CUDA chooses on its own) or not. A refused mesh or frame (InvalidInputError)
+size, a throw of up to 1000 sizes, a collapse onto a plane, a scaling, or the same frame again), with float32 or
+float64 input, and far corners searched by subtree (CornerField.far_cells, which only CUDA chooses on its own) or
+not. A refused mesh or frame (InvalidInputError)
 is an outcome, not a problem. A slice through the mesh (24 x 24) must be finite and list only cells its plane
 crosses. Then 180 points (uniform in the domain, near and on the surface, and 50 diagonals
 away) are answered in both modes and compared with the oracle, within the bounds of the stability table
