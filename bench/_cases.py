@@ -240,7 +240,12 @@ def wrong_sides(distance_field, vertices, faces, points: np.ndarray) -> np.ndarr
     truth_signed, confident = _oracle_sides(points, vertices, faces, truth,
                                             signed=distance_field.info()["sign"] != "none")
     exact = distance_field.query(points, mode="exact").distance
-    return np.flatnonzero(confident & ((exact < 0) != (truth_signed < 0)))
+    return np.flatnonzero(_on_wrong_side(exact, truth_signed, confident))
+
+
+def _on_wrong_side(distance: np.ndarray, truth_signed: np.ndarray, confident: np.ndarray) -> np.ndarray:
+    """Where an answer's side is not the oracle's, among the points whose side the oracle is sure of."""
+    return confident & ((distance < 0) != (truth_signed < 0))
 
 
 def compare_with_oracle(distance_field, vertices, faces, points: np.ndarray, *, solid: bool) -> dict:
@@ -258,7 +263,7 @@ def compare_with_oracle(distance_field, vertices, faces, points: np.ndarray, *, 
     adf = distance_field.query(points, mode="adf", outputs=ALL_OUTPUTS)
     exact_allowed = tol.EXACT_DISTANCE * diag + tol.FLOAT32_RELATIVE * truth
     exact_error = np.abs(np.abs(exact.distance) - truth)
-    wrong_signs = int(np.count_nonzero((exact.distance < 0)[confident] != (truth_signed < 0)[confident]))
+    wrong_signs = int(np.count_nonzero(_on_wrong_side(exact.distance, truth_signed, confident)))
     leaf = leaf_sides(distance_field, points)
     adf_allowed = np.where(np.isnan(leaf), exact_allowed, tol.ADF_LEAF_DIAGONALS * math.sqrt(3.0) * np.nan_to_num(leaf)
                            + tol.EXACT_DISTANCE * diag)

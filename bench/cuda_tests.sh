@@ -35,9 +35,8 @@ PY
 fi
 python3 -m pytest --collect-only -q -p no:cacheprovider -k cuda tests 2>/dev/null | grep '::' | sed 's/ *$//' | sort > /tmp/badf-cuda-ids.txt
 touch "$done_list"
-todo=$(comm -23 /tmp/badf-cuda-ids.txt <(sort -u "$done_list") | wc -l)
-echo "$(wc -l < /tmp/badf-cuda-ids.txt) CUDA tests, $todo to run" | tee -a "$out/cuda-tests.txt"
 mapfile -t ids < <(comm -23 /tmp/badf-cuda-ids.txt <(sort -u "$done_list"))
+echo "$(wc -l < /tmp/badf-cuda-ids.txt) CUDA tests, ${#ids[@]} to run" | tee -a "$out/cuda-tests.txt"
 parallel=()
 python3 -c "import xdist" 2>/dev/null && parallel=(-n "$workers")
 log="$out/cuda-tests-$(date -u +%H%M%S).log"
