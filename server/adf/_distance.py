@@ -91,6 +91,9 @@ _OUT_NORMAL = wp.constant(OUT_NORMAL)
 _OUT_FACE = wp.constant(OUT_FACE)
 
 _Vec27 = wp.types.vector(length=27, dtype=wp.float32)
+# Where a leaf's corners inside and outside add up to more than its diagonal by more than this share of it (for
+# the values' rounding), the sign jumps between them (query_points)
+_JUMP_SLACK = wp.constant(1.0e-4)
 
 # Threads per block of the corner searches and the corner signs (each thread walks the BVH with a stack
 # of its own), and registers per thread. `badf bench engine --kernels --block-sweep --register-sweep` times
@@ -1301,6 +1304,8 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 nearest = float(3.0e38)
                 has_inside = False
                 has_outside = False
+                deepest = float(0.0)  # the largest |value| of the corners inside, and of those outside
+                farthest_out = float(0.0)
                 clamped = False
                 for corner in range(8):
                     cx = float((corner >> 2) & 1)
@@ -1319,8 +1324,10 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                     if wp.static(winding):
                         if v < 0.0:
                             has_inside = True
+                            deepest = wp.max(deepest, -v)
                         else:
                             has_outside = True
+                            farthest_out = wp.max(farthest_out, v)
                         if not at_band:  # a clamped value bounds nothing
                             farthest = wp.max(farthest, wp.abs(v))
                     nearest = wp.min(nearest, wp.abs(v))
@@ -1372,6 +1379,12 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 # are asked for, so a distance does not depend on them)
                 weak = length < _WEAK_GRADIENT and not beyond and not flat
                 clear = scale > 1 or farthest > diagonal or nearest > 0.5 * diagonal
+                # the jump also runs through finest leaves the surface crosses, beside an opening's rim: a signed
+                # distance changes no faster than its argument where its sign does not jump, and no two corners
+                # are farther apart than the diagonal, so a corner inside and one outside whose distances add up
+                # to more than that straddle a jump (a clamped corner's band is less than its distance: it adds
+                # no jump that is not there)
+                jumps = clear or deepest + farthest_out > diagonal * (1.0 + _JUMP_SLACK)
                 # every corner of a leaf the surface may cross clamped at the band says nothing of the surface,
                 # which may still cross the leaf between them (a band narrower than a cell: an unsigned field read
                 # points on its sheet as beyond the band): such a point is answered exactly. The surface may cross
@@ -1383,7 +1396,7 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 # two cells (outside check, 2026-11-23). Such a point reading inside the band is answered exactly,
                 # so band or not, ADF answers are the same after clamping, or exact
                 short_of_band = clamped and not flat and not beyond
-                if not (has_inside and has_outside and clear) and not weak and not clamped_near and not short_of_band:
+                if not (has_inside and has_outside and jumps) and not weak and not clamped_near and not short_of_band:
                     if outputs & _OUT_DISTANCE:
                         out_distance[i] = value
                     if outputs & _OUT_NORMAL:
