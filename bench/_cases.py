@@ -212,6 +212,27 @@ def leaf_sides(distance_field, points: np.ndarray) -> np.ndarray:
     return np.where(inside, side / 2.0 ** leaf_level, np.nan)
 
 
+
+# corner c of a cell lies at this offset from its lowest corner, in cells (the engine's corner order)
+CORNER_OFFSETS = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)])
+
+
+def finest_leaf_corners(distance_field, points: np.ndarray) -> np.ndarray:
+    """(P, 8) float64: the field's values at the corners (CORNER_OFFSETS) of each point's leaf where that leaf is one
+    of the finest level, NaN rows elsewhere; from the field's own lists (`corner_samples`, `octree_cells`)."""
+    centre, side, cell = domain_of(distance_field)
+    depth = distance_field.info()["depth"]
+    low = centre - side / 2.0
+    positions, values, _ = distance_field.corner_samples()
+    value_at = dict(zip(map(tuple, np.rint((positions - low) / cell).astype(np.int64)), values.astype(np.float64)))
+    levels, cells = distance_field.octree_cells()
+    finest = set(map(tuple, cells[levels == depth]))
+    corners = np.full((len(points), 8), np.nan)
+    for i, base in enumerate(np.floor((np.asarray(points, np.float64) - low) / cell).astype(np.int64)):
+        if tuple(base) in finest:
+            corners[i] = [value_at[tuple(base + offset)] for offset in CORNER_OFFSETS]
+    return corners
+
 # -- measurements ---------------------------------------------------------------------------------------
 def nonfinite_count(result) -> int:
     return int(sum(np.count_nonzero(~np.isfinite(a)) for a in (result.distance, result.closest_point, result.normal)

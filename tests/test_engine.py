@@ -10,6 +10,7 @@ import warp as wp
 import meshes
 import oracle
 import tolerances as tol
+from badf.bench._cases import finest_leaf_corners
 from badf.server.adf import DistanceField, InvalidInputError
 from badf.server.adf._buffers import KeptLaunch
 from badf.server.adf._distance import EXACT_ROUNDING, CornerField, _settle_far_list
@@ -2688,20 +2689,12 @@ def test_adf_beside_an_opening_answers_exactly_where_corners_straddle_the_jump(d
     points = rim + direction * rng.random((len(rim), 1)) * cell
     adf = field.query(points, mode="adf").distance
     exact = field.query(points, mode="exact").distance
-    # each point's finest leaf and its corners' values, worked out on the host from the field's own lists
-    centre, side = domain_of(field)
-    low = centre - side / 2.0
-    positions, values, _ = field.corner_samples()
-    value_at = dict(zip(map(tuple, np.rint((positions - low) / cell).astype(np.int64)), values.astype(np.float64)))
-    levels, cells = field.octree_cells()
-    finest = set(map(tuple, cells[levels == depth]))
-    offsets = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)])
-    straddles = np.zeros(len(points), bool)
-    for i, base in enumerate(np.floor((points - low) / cell).astype(np.int64)):
-        if tuple(base) in finest:
-            v = np.array([value_at[tuple(base + o)] for o in offsets])
-            if np.any(v < 0) and np.any(v >= 0):
-                straddles[i] = -v[v < 0].min() + v[v >= 0].max() > np.sqrt(3.0) * cell * 1.001
+    # each point's finest leaf's corner values, worked out on the host from the field's own lists (NaN elsewhere)
+    corners = finest_leaf_corners(field, points)
+    deepest = np.max(np.where(corners < 0, -corners, 0.0), axis=1)
+    farthest_out = np.max(np.where(corners >= 0, corners, 0.0), axis=1)
+    both = np.any(corners < 0, axis=1) & np.any(corners >= 0, axis=1)
+    straddles = both & (deepest + farthest_out > np.sqrt(3.0) * cell * 1.001)
     assert np.count_nonzero(straddles) > 300, np.count_nonzero(straddles)
     np.testing.assert_array_equal(adf[straddles], exact[straddles])
     truth = oracle.signed_distance(points, vertices, faces)

@@ -27,32 +27,23 @@ import time
 import numpy as np
 
 from badf.bench import _oracle as oracle
+from badf.bench._cases import CORNER_OFFSETS, finest_leaf_corners
 
-_OFFSETS = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)])
-_APART = np.sqrt(np.abs(_OFFSETS[:, None, :] - _OFFSETS[None, :, :]).sum(axis=2))  # in cells
+_APART = np.sqrt(np.abs(CORNER_OFFSETS[:, None, :] - CORNER_OFFSETS[None, :, :]).sum(axis=2))  # in cells
 
 
 def straddling(field, points: np.ndarray) -> dict[str, np.ndarray]:
     """Whether each point lies in a finest leaf whose corners straddle a sign jump, by each rule (the docstring)."""
-    info = field.info()
-    depth, cell = info["depth"], info["domain"]["finest_cell"]
-    low = np.asarray(info["domain"]["centre"]) - info["domain"]["side"] / 2.0
-    positions, values, _ = field.corner_samples()
-    value_at = dict(zip(map(tuple, np.rint((positions - low) / cell).astype(np.int64)), values.astype(np.float64)))
-    levels, cells = field.octree_cells()
-    finest = set(map(tuple, cells[levels == depth]))
-    found = {"diagonal": np.zeros(len(points), bool), "pairs": np.zeros(len(points), bool)}
-    for i, base in enumerate(np.floor((points - low) / cell).astype(np.int64)):
-        if tuple(base) not in finest:
-            continue
-        v = np.array([value_at[tuple(base + o)] for o in _OFFSETS])
-        inside = v < 0
-        if inside.all() or not inside.any():
-            continue
-        found["diagonal"][i] = -v[inside].min() + v[~inside].max() > np.sqrt(3.0) * cell * 1.0001
-        opposite = inside[:, None] != inside[None, :]
-        found["pairs"][i] = np.any(opposite & (np.abs(v)[:, None] + np.abs(v)[None, :] > _APART * cell * 1.0001))
-    return found
+    cell = field.info()["domain"]["finest_cell"]
+    v = finest_leaf_corners(field, points)  # NaN rows outside finest leaves: neither side, so no rule holds
+    inside, outside = v < 0, v >= 0
+    both = inside.any(axis=1) & outside.any(axis=1)
+    deepest = np.where(inside, -v, 0.0).max(axis=1)
+    farthest_out = np.where(outside, v, 0.0).max(axis=1)
+    opposite = (inside[:, :, None] & outside[:, None, :]) | (outside[:, :, None] & inside[:, None, :])
+    far = np.abs(v)[:, :, None] + np.abs(v)[:, None, :] > _APART * cell * 1.0001
+    return {"diagonal": both & (deepest + farthest_out > np.sqrt(3.0) * cell * 1.0001),
+            "pairs": np.any(opposite & far, axis=(1, 2))}
 
 
 def within_a_cell(anchors: np.ndarray, cell: float, rng: np.random.Generator) -> np.ndarray:
