@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One call on a GPU machine (the device tool): set up, check on CUDA, then time.
-#   bash bench/gpu_session.sh [tests] [engine] [signs] [split] [far] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] [shapes] [binned] [slabs] [capped] ...
+#   bash bench/gpu_session.sh [tests] [engine] [rim] [random] [signs] [split] [far] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] [shapes] [binned] [slabs] [capped] ...
 # Expects warp-lang and the wheels unpacked by ../shared/gpu/setup.sh (sourced before), the shared meshes
 # copied into $BADF_SHARED_DATA (default .gpudata/), and writes logs and JSON under $OUT.
 # The SAH shape's builder runs on Warp's CPU back-end, whose compiler ../shared/gpu/pack.sh leaves out: carry it as
@@ -14,6 +14,7 @@ fi
 out="${OUT:-$PWD/bench-out}"
 mkdir -p "$out"
 export BADF_SHARED_DATA="${BADF_SHARED_DATA:-$PWD/.gpudata}"
+export WARP_CACHE_PATH="${WARP_CACHE_PATH:-/tmp/badf-warp-cache}"  # one kernel cache for every step and call
 python3 -m pip install -q --no-deps --no-build-isolation --no-index -e . >/dev/null 2>&1 || echo "pip install -e . failed"
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$out/gpu.txt"
 for step in "$@"; do
@@ -100,6 +101,19 @@ for step in "$@"; do
       python3 bench/probes/probe_bvh_shapes.py "$BADF_SHARED_DATA"/{stanford-bunny,armadillo-86k}.npz --device cuda:0 \
         --depths 7 --rounds 4 --frames 20 --points 65536 --out "$out/shapes-cuda.json" 2>&1 | grep depth \
         | tee "$out/shapes-cuda.log" ;;
+    rim)
+      # ADF queries beside openings answered exactly (34ab20a) against the engine before it and against the pairs
+      # rule not kept (docs/results/rim-jumps-cpu-2215): here, bench/ab.sh prepare before=d41a4d4 pairs=d41a4d4, then
+      # that patch applied in .ab/pairs; carry .ab. The bunny's frames and 65,536-point ADF batches near its surface
+      # and in its box, the three engines alternated
+      python3 -m badf.bench.interleave --variant before=.ab/before --variant after=. --variant pairs=.ab/pairs \
+        --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --depth 7 --rounds "${BADF_RIM_ROUNDS:-12}" --frames 10 \
+        --queries 10 --out "$out/rim-interleave.json" 2>&1 | grep -v '^Module' | tee "$out/rim-interleave.log" ;;
+    random)
+      # the random check on CUDA at depths 7 to 10, for $BADF_RANDOM_SECONDS (120)
+      python3 -m badf.bench.random_check --device cuda:0 --depths 7 10 --seed 9000000 \
+        --seconds "${BADF_RANDOM_SECONDS:-120}" --out "$out/random-cuda.json" 2>&1 | grep -v '^Module' \
+        | tee "$out/random-cuda.log" | tail -12 ;;
     *)
       echo "unknown step $step" ;;
   esac

@@ -9,7 +9,10 @@ repository's root or a `bench/ab.sh prepare` archive does. Each runs in a proces
 frames (`deform`, as `badf bench engine`) and collects each frame's wall time, device total and device time
 after the upload stage (whose events bracket host work). At the end every variant answers the same points:
 the report gives each one's error against the float64 oracle and the largest difference between variants, so
-a speed-up that changed answers shows. Prints a table; `--out` writes JSON.
+a speed-up that changed answers shows. With `--queries R`, each round also times R ADF queries of two batches
+per variant (wall clock, synchronised): `near`, 65,536 points within about a finest cell of the rest surface, and
+`box`, 65,536 uniform in the bounding box grown by a tenth; the report adds how many answers of each batch equal
+exact mode's to the bit (the points the ADF kernel answers exactly). Prints a table; `--out` writes JSON.
 """
 
 from __future__ import annotations
@@ -61,6 +64,25 @@ for line in sys.stdin:
             totals.append(stages["total"])
             after.append(stages["total"] - stages.get("upload", 0.0))
         answer({"wall": walls, "total": totals, "after_upload": after})
+    elif command[0] == "queries":
+        batches, repeats, reply = np.load(command[1]), int(command[2]), {}
+        for name in batches.files:
+            points = batches[name]
+            field.query(points, mode="adf")
+            walls = []
+            for _ in range(repeats):
+                wp.synchronize_device(device)
+                start = time.perf_counter()
+                field.query(points, mode="adf")
+                wp.synchronize_device(device)
+                walls.append((time.perf_counter() - start) * 1e3)
+            reply[name] = walls
+        answer(reply)
+    elif command[0] == "exactly":
+        batches = np.load(command[1])
+        answer({name: int(np.count_nonzero(field.query(batches[name], mode="adf").distance
+                                           == field.query(batches[name], mode="exact").distance))
+                for name in batches.files})
     elif command[0] == "answer":
         points = np.load(command[1])
         stats = field.stats()
@@ -131,15 +153,34 @@ class _Variant:
                 self.process.wait()
 
 
+def query_batches(vertices: np.ndarray, faces: np.ndarray, depth: int, count: int = 65_536) -> dict[str, np.ndarray]:
+    """The batches `--queries` times: `near`, within about a finest cell (the box's longest side / 2^depth) of the
+    surface, and `box`, uniform in the bounding box grown by a tenth; float32, from a fixed seed."""
+    from badf.bench._cases import near_surface, surface_samples
+
+    rng = np.random.default_rng(1)
+    lo, hi = vertices.min(axis=0).astype(np.float64), vertices.max(axis=0).astype(np.float64)
+    cell = float((hi - lo).max()) / 2**depth
+    near = near_surface(surface_samples(vertices, faces, count, rng), cell, rng)
+    box = rng.uniform(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), (count, 3))
+    return {"near": near.astype(np.float32), "box": box.astype(np.float32)}
+
+
 def measure(variants: dict[str, pathlib.Path], mesh: pathlib.Path, *, depth: int, device: str, rounds: int,
-            frames: int, warm_up: int, points: int) -> dict:
-    """Each variant's frames, round by round in turn (the first of each round's order alternating), then the
-    same points answered by each."""
+            frames: int, warm_up: int, points: int, queries: int = 0) -> dict:
+    """Each variant's frames (and with `queries`, that many ADF queries of each of `query_batches`), round by
+    round in turn (the first of each round's order alternating), then the same points answered by each."""
     from badf.bench._oracle import bbox_diagonal, signed_distance
 
     with tempfile.TemporaryDirectory() as scratch:
         roots = {name: _package_root(folder, pathlib.Path(scratch), name) for name, folder in variants.items()}
         running: list[_Variant] = []
+        data = np.load(mesh)
+        vertices = data["vertices"]
+        batches = pathlib.Path(scratch) / "batches.npz"
+        if queries:
+            np.savez(batches, **query_batches(vertices, data["faces"], depth))
+        query_rounds = {v: {} for v in variants}
         try:
             for name, root in roots.items():
                 running.append(_Variant(name, root, mesh, depth, device))
@@ -151,8 +192,11 @@ def measure(variants: dict[str, pathlib.Path], mesh: pathlib.Path, *, depth: int
                     times = variant.run(frames)
                     for kind in ("wall", "after_upload"):
                         per_round[variant.name][kind].append(float(np.median(times[kind])))
-            data = np.load(mesh)
-            vertices = data["vertices"]
+                    if queries:
+                        for batch, walls in variant.ask(f"queries {batches} {queries}").items():
+                            query_rounds[variant.name].setdefault(batch, []).append(
+                                {"median": float(np.median(walls)), "min": float(np.min(walls))})
+            exactly = {v.name: v.ask(f"exactly {batches}") for v in running} if queries else {}
             lo, hi = vertices.min(axis=0), vertices.max(axis=0)
             probe = np.random.default_rng(0).uniform(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), (points, 3))
             path = pathlib.Path(scratch) / "points.npy"
@@ -186,6 +230,16 @@ def measure(variants: dict[str, pathlib.Path], mesh: pathlib.Path, *, depth: int
             "adf_max_difference_from_first_diag": float(
                 np.max(np.abs(np.asarray(a["adf"]) - np.asarray(answers[first]["adf"]))) / diagonal),
         }
+        if queries:
+            report["variants"][variant.name]["queries"] = {
+                batch: {"median_ms": round(float(np.median([r["median"] for r in per])), 4),
+                        "min_ms": round(float(np.min([r["min"] for r in per])), 4),
+                        # its round medians less the first variant's, round by round
+                        "vs_first_ms": round(float(np.median(np.subtract(
+                            [r["median"] for r in per], [r["median"] for r in query_rounds[first][batch]]))), 4),
+                        "answered_exactly": exactly[variant.name][batch]}
+                for batch, per in query_rounds[variant.name].items()}
+    report["queries_per_round"] = queries
     return report
 
 
@@ -211,6 +265,13 @@ def _print(report: dict) -> None:
               f"{v['adf_max_difference_from_first_diag']:>9.2e} {v['memory_bytes'] / 2**20:>7.2f}")
     print("ms, medians over every frame; each 'vs first' is the median over rounds of each round's difference; errors "
           "against the float64 oracle, in bounding-box diagonals, at the last frame")
+    if report["queries_per_round"]:
+        print(f"ADF queries of 65,536 points, {report['queries_per_round']} a round; wall ms (synchronised):")
+        print(f"{'variant':<10} {'batch':<6} {'median':>8} {'min':>8} {'vs first':>9} {'exactly':>8}")
+        for name, v in report["variants"].items():
+            for batch, q in v["queries"].items():
+                print(f"{name:<10} {batch:<6} {q['median_ms']:>8.3f} {q['min_ms']:>8.3f} {q['vs_first_ms']:>+9.4f} "
+                      f"{q['answered_exactly']:>8}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -224,6 +285,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=10, help="frames a variant runs in each round")
     parser.add_argument("--warm-up", type=int, default=10)
     parser.add_argument("--points", type=int, default=1000, help="points answered at the end, against the oracle")
+    parser.add_argument("--queries", type=int, default=0,
+                        help="ADF queries of each of two 65,536-point batches a variant times in each round (0: none)")
     parser.add_argument("--out", type=pathlib.Path)
     args = parser.parse_args(argv)
     variants = {}
@@ -237,9 +300,12 @@ def main(argv: list[str] | None = None) -> int:
     for name, count in (("--rounds", args.rounds), ("--frames", args.frames), ("--points", args.points)):
         if count < 1:
             parser.error(f"{name} must be at least 1, got {count}")
+    if args.queries < 0:
+        parser.error(f"--queries must be 0 or more, got {args.queries}")
     device = args.device if args.device is not None else ("cuda:0" if _has_cuda() else "cpu")
     report = measure(variants, find_mesh(args.mesh), depth=args.depth, device=device, rounds=args.rounds,
-                     frames=args.frames, warm_up=max(args.warm_up, 0), points=args.points)
+                     frames=args.frames, warm_up=max(args.warm_up, 0), points=args.points,
+                     queries=args.queries)
     _print(report)
     if args.out:
         args.out.write_text(json.dumps(report, indent=1))

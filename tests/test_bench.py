@@ -134,7 +134,7 @@ def test_interleave_times_variants_in_turn_and_holds_their_answers_to_the_oracle
     out = tmp_path / "interleave.json"
     flags = ["--variant", f"a={root}", "--variant", f"b={root}", "--mesh", str(meshes.data_file("spot")),
              "--depth", "3", "--device", "cpu", "--rounds", "2", "--frames", "1", "--warm-up", "1", "--points", "50",
-             "--out", str(out)]
+             "--queries", "1", "--out", str(out)]
     assert interleave.main(flags) == 0
     report = json.loads(out.read_text())
     a, b = report["variants"]["a"], report["variants"]["b"]
@@ -146,6 +146,9 @@ def test_interleave_times_variants_in_turn_and_holds_their_answers_to_the_oracle
     assert b["adf_max_difference_from_first_diag"] == 0.0  # the same code answers the same, bit for bit
     assert a["wall_vs_first_ms"] == a["after_upload_vs_first_ms"] == 0.0  # the first against itself, round by round
     assert abs(b["wall_vs_first_ms"]) < max(a["wall_ms"]["p90"], b["wall_ms"]["p90"])
+    for batch in ("near", "box"):  # --queries: each variant timed both batches, and the same code answers alike
+        assert a["queries"][batch]["median_ms"] > 0 and a["queries"][batch]["vs_first_ms"] == 0.0
+        assert b["queries"][batch]["answered_exactly"] == a["queries"][batch]["answered_exactly"]
     with pytest.raises(SystemExit):
         interleave.main(["--variant", f"a={root}", "--mesh", "spot"])  # one variant compares nothing
     with pytest.raises(SystemExit, match="has no"):
