@@ -233,6 +233,26 @@ def finest_leaf_corners(distance_field, points: np.ndarray) -> np.ndarray:
             corners[i] = [value_at[tuple(base + offset)] for offset in CORNER_OFFSETS]
     return corners
 
+
+def rim_cells(distance_field, vertices: np.ndarray, faces: np.ndarray) -> set[tuple[int, int, int]]:
+    """The finest cells (integer coordinates in the field's domain) that the mesh's rim passes through: its edges
+    that no other face runs the other way (vertex ids as given, so seams count), each sampled every eighth of a
+    cell. A subset of the leaves the engine marks (`mark_rim_leaves` widens each piece's box)."""
+    centre, side, cell = domain_of(distance_field)
+    low = centre - side / 2.0
+    f = np.asarray(faces, np.int64)
+    start, end = f.reshape(-1), np.roll(f, -1, axis=1).reshape(-1)
+    lo, hi = np.minimum(start, end), np.maximum(start, end)
+    edges, net = np.unique(np.stack([lo, hi], axis=1), axis=0, return_inverse=True)
+    use = np.zeros(len(edges), np.int64)
+    np.add.at(use, net.reshape(-1), np.where(start < end, 1, -1))
+    cells: set[tuple[int, int, int]] = set()
+    v = np.asarray(vertices, np.float64)
+    for a, b in v[edges[use != 0]]:
+        t = np.linspace(0.0, 1.0, int(np.ceil(8.0 * np.linalg.norm(b - a) / cell)) + 2)[:, None]
+        cells.update(map(tuple, np.floor((a + t * (b - a) - low) / cell).astype(np.int64)))
+    return cells
+
 # -- measurements ---------------------------------------------------------------------------------------
 def nonfinite_count(result) -> int:
     return int(sum(np.count_nonzero(~np.isfinite(a)) for a in (result.distance, result.closest_point, result.normal)

@@ -102,13 +102,15 @@ for step in "$@"; do
         --depths 7 --rounds 4 --frames 20 --points 65536 --out "$out/shapes-cuda.json" 2>&1 | grep depth \
         | tee "$out/shapes-cuda.log" ;;
     rim)
-      # ADF queries beside openings answered exactly (34ab20a) against the engine before it and against the pairs
-      # rule not kept (docs/results/rim-jumps-cpu-2215): here, bench/ab.sh prepare before=d41a4d4 pairs=d41a4d4, then
-      # that patch applied in .ab/pairs; carry .ab. The bunny's frames and 65,536-point ADF batches near its surface
-      # and in its box, the three engines alternated
-      python3 -m badf.bench.interleave --variant before=.ab/before --variant after=. --variant pairs=.ab/pairs \
+      # ADF queries beside openings answered exactly, as the engine grew: before either rule (d41a4d4), with the
+      # corners' diagonal rule (a583058), and with leaves the rim crosses too (the working tree). Here:
+      # bench/ab.sh prepare before=d41a4d4 head=a583058, carry .ab. The bunny's frames and 65,536-point ADF batches
+      # near its surface and in its box, the three engines alternated
+      python3 -m badf.bench.interleave --variant before=.ab/before --variant diagonal=.ab/head --variant rim=. \
         --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --depth 7 --rounds "${BADF_RIM_ROUNDS:-12}" --frames 10 \
-        --queries 10 --out "$out/rim-interleave.json" 2>&1 | grep -v '^Module' | tee "$out/rim-interleave.log" ;;
+        --queries 10 --out "$out/rim-interleave.json" 2>&1 | grep -v '^Module' | tee "$out/rim-interleave.log"
+      python3 bench/probes/probe_rim_jumps.py --device cuda:0 --bunny "$BADF_SHARED_DATA/stanford-bunny.npz" 2>&1 \
+        | grep -v '^Module' | tee "$out/rim-probe-cuda.jsonl" ;;
     random)
       # the random check on CUDA at depths 7 to 10, for $BADF_RANDOM_SECONDS (120)
       python3 -m badf.bench.random_check --device cuda:0 --depths 7 10 --seed 9000000 \

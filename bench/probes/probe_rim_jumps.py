@@ -8,6 +8,9 @@ are apart straddle a jump. Two rules find such leaves:
   corners are farther apart). The query kernel answers points in such leaves exactly since 2026-12-07.
 - "pairs": any two corners of opposite signs add up to more than they are apart (finds more; tried on the CPU,
   docs/results/rim-jumps-cpu-2215, not kept).
+- "rim": the leaf is a finest cell the rim passes through (`bench._cases.rim_cells`), where the winding number
+  takes every value from 0 to 1 whatever the corners read. The query kernel answers points in leaves the rim
+  crosses exactly since 2026-12-08 (`mark_rim_leaves`, which marks a few cells beside the rim too).
 This finds the leaves of each rule on the host, from the field's own corner values (`corner_samples`,
 `octree_cells`), for points within a finest cell of the surface (of a bowl's rim, and of the whole bunny), and
 prints against the float64 oracle, in finest cells: the ADF's error as served, and as it would be with the points
@@ -27,14 +30,14 @@ import time
 import numpy as np
 
 from badf.bench import _oracle as oracle
-from badf.bench._cases import CORNER_OFFSETS, finest_leaf_corners
+from badf.bench._cases import CORNER_OFFSETS, domain_of, finest_leaf_corners, rim_cells
 
 _APART = np.sqrt(np.abs(CORNER_OFFSETS[:, None, :] - CORNER_OFFSETS[None, :, :]).sum(axis=2))  # in cells
 
 
-def straddling(field, points: np.ndarray) -> dict[str, np.ndarray]:
-    """Whether each point lies in a finest leaf whose corners straddle a sign jump, by each rule (the docstring)."""
-    cell = field.info()["domain"]["finest_cell"]
+def straddling(field, points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> dict[str, np.ndarray]:
+    """Whether each point lies in a finest leaf where the sign may jump, by each rule (the docstring)."""
+    centre, side, cell = domain_of(field)
     v = finest_leaf_corners(field, points)  # NaN rows outside finest leaves: neither side, so no rule holds
     inside, outside = v < 0, v >= 0
     both = inside.any(axis=1) & outside.any(axis=1)
@@ -42,8 +45,11 @@ def straddling(field, points: np.ndarray) -> dict[str, np.ndarray]:
     farthest_out = np.where(outside, v, 0.0).max(axis=1)
     opposite = (inside[:, :, None] & outside[:, None, :]) | (outside[:, :, None] & inside[:, None, :])
     far = np.abs(v)[:, :, None] + np.abs(v)[:, None, :] > _APART * cell * 1.0001
+    crossed = rim_cells(field, vertices, faces)
+    at = np.floor((np.asarray(points, np.float64) - (centre - side / 2.0)) / cell).astype(np.int64)
     return {"diagonal": both & (deepest + farthest_out > np.sqrt(3.0) * cell * 1.0001),
-            "pairs": np.any(opposite & far, axis=(1, 2))}
+            "pairs": np.any(opposite & far, axis=(1, 2)),
+            "rim": np.fromiter(map(crossed.__contains__, map(tuple, at)), bool, len(at))}
 
 
 def within_a_cell(anchors: np.ndarray, cell: float, rng: np.random.Generator) -> np.ndarray:
@@ -99,7 +105,9 @@ def main() -> None:
         row = {"case": label, "depth": depth, "points": len(points),
                "adf_max_error_cells": round(float(error.max()), 3), "adf_over_one_cell": int((error >= 1.0).sum()),
                "adf_answered_exactly": int((adf == exact).sum())}
-        for rule, jump in straddling(field, points).items():
+        rules = straddling(field, points, vertices, faces)
+        rules["diagonal+rim"] = rules["diagonal"] | rules["rim"]
+        for rule, jump in rules.items():
             fixed = np.abs(np.where(jump, exact, adf) - truth) / cell
             row[rule] = {"points": int(jump.sum()), "max_error_cells": round(float(fixed.max()), 3),
                          "over_one_cell": int((fixed >= 1.0).sum())}

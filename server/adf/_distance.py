@@ -76,6 +76,18 @@ _WEAK_GRADIENT = wp.constant(0.01)
 _MEDIAL_COSINE = wp.constant(0.2)
 MEDIAL_SHIFT = 8
 _MEDIAL_SHIFT = wp.constant(MEDIAL_SHIFT)
+_OTHER_THAN_MEDIAL = wp.constant(~(255 << MEDIAL_SHIFT))  # the child mask's bits that medial marks keep
+# An open mesh's winding number takes every value from 0 to 1 around its rim (each edge that no other face runs
+# the other way), so the sheet where its sign jumps off the surface starts at the rim: a leaf the rim crosses
+# holds both signs, whatever its corners read (a pocket of the other sign reaching no corner erred by 1.17 cells
+# beside a bowl's rim at depth 6). Such a leaf is marked (mark_rim_leaves) in bit RIM_SHIFT + o of its parent's
+# child mask, and its points are answered exactly
+RIM_SHIFT = 16
+_RIM_SHIFT = wp.constant(RIM_SHIFT)
+# the rim's edges are cut into pieces no longer than this share of a finest cell: each piece's box, widened by
+# _RIM_REACH cells for the rounding of cell coordinates, then meets at most two cells along each axis
+_RIM_PIECE = wp.constant(0.5)
+_RIM_REACH = wp.constant(1.0e-3)
 # How far (in domain sides) off the surface an on-surface exact normal looks for the winding numbers' inside
 _SIDE_STEP = wp.constant(16.0 * SURFACE_SNAP)
 
@@ -843,7 +855,45 @@ def mark_medial_leaves(
                     least = wp.min(least, wp.dot(ui, uj))
         if nearest <= near and least < _MEDIAL_COSINE:
             marks |= 1 << octant
-    child_mask[node] = (child_mask[node] & 255) | (marks << _MEDIAL_SHIFT)
+    child_mask[node] = (child_mask[node] & _OTHER_THAN_MEDIAL) | (marks << _MEDIAL_SHIFT)
+
+
+@wp.kernel(enable_backward=False)
+def mark_rim_leaves(
+    vertices: wp.array(dtype=wp.vec3),
+    rim_edges: wp.array(dtype=wp.vec2i),
+    tree: OctreeView,
+    child_mask: wp.array(dtype=wp.int32),
+):
+    """Mark every leaf that rim edge e (vertex ids) crosses, in its parent's child mask (bit _RIM_SHIFT + octant):
+    the edge is cut into pieces of at most _RIM_PIECE finest cells, and each leaf holding a finest cell that a
+    piece's box (widened by _RIM_REACH cells) meets is marked, a few beside the edge with them. One thread per edge;
+    an edge as long as the domain's diagonal at depth 10 is about 3,600 pieces."""
+    e = wp.tid()
+    edge = rim_edges[e]
+    inv_cell = 1.0 / tree.cell
+    a = (vertices[edge[0]] - tree.origin) * inv_cell
+    b = (vertices[edge[1]] - tree.origin) * inv_cell
+    top = float((1 << tree.depth) - 1)
+    pieces = int(wp.ceil(wp.min(wp.length(b - a), 4.0 * top) / _RIM_PIECE)) + 1
+    for k in range(pieces):
+        p = a + (b - a) * (float(k) / float(pieces))
+        q = a + (b - a) * (float(k + 1) / float(pieces))
+        low = wp.vec3i(
+            int(wp.floor(wp.clamp(wp.min(p[0], q[0]) - _RIM_REACH, 0.0, top))),
+            int(wp.floor(wp.clamp(wp.min(p[1], q[1]) - _RIM_REACH, 0.0, top))),
+            int(wp.floor(wp.clamp(wp.min(p[2], q[2]) - _RIM_REACH, 0.0, top))),
+        )
+        high = wp.vec3i(
+            int(wp.floor(wp.clamp(wp.max(p[0], q[0]) + _RIM_REACH, 0.0, top))),
+            int(wp.floor(wp.clamp(wp.max(p[1], q[1]) + _RIM_REACH, 0.0, top))),
+            int(wp.floor(wp.clamp(wp.max(p[2], q[2]) + _RIM_REACH, 0.0, top))),
+        )
+        for x in range(low[0], high[0] + 1):
+            for y in range(low[1], high[1] + 1):
+                for z in range(low[2], high[2] + 1):
+                    node, octant, _level = locate(tree, wp.vec3i(x, y, z))
+                    wp.atomic_or(child_mask, node, 1 << (_RIM_SHIFT + octant))
 
 
 @wp.func
@@ -1396,7 +1446,12 @@ def _make_query_kernel(method: int) -> wp.Kernel:
                 # two cells (outside check, 2026-11-23). Such a point reading inside the band is answered exactly,
                 # so band or not, ADF answers are the same after clamping, or exact
                 short_of_band = clamped and not flat and not beyond
-                if not (has_inside and has_outside and jumps) and not weak and not clamped_near and not short_of_band:
+                # a leaf the rim crosses (mark_rim_leaves) holds both signs, whatever its corners read
+                rim = False
+                if wp.static(winding):
+                    rim = (tree.child_mask[node] >> (_RIM_SHIFT + octant)) & 1 != 0
+                if (not (has_inside and has_outside and jumps) and not weak and not clamped_near and not short_of_band
+                        and not rim):
                     if outputs & _OUT_DISTANCE:
                         out_distance[i] = value
                     if outputs & _OUT_NORMAL:

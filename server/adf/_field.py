@@ -27,6 +27,7 @@ from badf.server.adf._distance import (
     CornerField,
     PointQuery,
     mark_medial_leaves,
+    mark_rim_leaves,
 )
 from badf.server.adf._inputs import (
     BVH_SHAPES,
@@ -488,6 +489,14 @@ class DistanceField:
                         "fans, so winding numbers near 1/2, about its openings, keep the walk's estimate and such "
                         "points may read the wrong side. A mesh whose faces share no vertex ids (a triangle soup, as "
                         "STL stores) has every edge on its rim: merge its coincident vertices first", RIM_LIMIT)
+        # the rim's edges (welded: a seam is no rim), whose leaves winding-signed ADF queries answer exactly
+        rim_edges = self._topology.rim_edges[:, :2] if self._sign == "winding" else np.zeros((0, 2), np.int64)
+        self._rim_edges = None
+        if len(rim_edges):
+            vertex_of = np.empty(self._topology.welded_count, np.int64)  # a vertex id at each welded one
+            vertex_of[self._topology.welded_faces.reshape(-1)] = f.reshape(-1)
+            self._rim_edges = b.array("sign.rim_edges", len(rim_edges), wp.vec2i)
+            self._rim_edges.assign(vertex_of[rim_edges].astype(np.int32))
         self._bvh = Bvh(len(f), with_moments=self._sign != "none", buffers=b, shape=shape, rim=rim)
         self._octree = Octree(self._depth, self._refine, self._halo, b)
         self._octree.surface_area = area
@@ -669,6 +678,8 @@ class DistanceField:
         tree, bvh, sign = self._query_views(cut_slot)
         if mode == "adf" and bits & (OUT_CLOSEST | OUT_NORMAL):
             self._mark_medial_leaves(tree, bvh)
+        if mode == "adf":
+            self._mark_rim_leaves(tree)
         band = domain.local_band(self._band)
         # float32 points are recentred on the device (the same float32 arithmetic); float64 ones on the host
         # in float64, which keeps the precision of points far from the origin
@@ -884,6 +895,15 @@ class DistanceField:
                   outputs=[o.child_mask], device=self._device)
         self._medial_marked = True
 
+    def _mark_rim_leaves(self, tree) -> None:
+        """Mark the leaves a winding-signed mesh's rim crosses (mark_rim_leaves), whose ADF answers are exact: once
+        a frame, for its first ADF query; nothing where there is no rim or no winding sign."""
+        if self._rim_marked or self._rim_edges is None:
+            return
+        wp.launch(mark_rim_leaves, dim=len(self._rim_edges), inputs=[self._vertices, self._rim_edges, tree],
+                  outputs=[self._octree.child_mask], device=self._device)
+        self._rim_marked = True
+
     # -- the pipeline ---------------------------------------------------------------------------------
     def _apply(self, local_vertices: np.ndarray, extent: float, *, domain_moved: bool, recentre: bool = False) -> None:
         """Upload a frame and rebuild the field: refit (or rebuild, when the domain moved), sign data,
@@ -903,6 +923,7 @@ class DistanceField:
         if not domain_moved and self._bvh.give_back_build():
             self._graph = None  # a graph that rebuilt the BVH holds what was given back
         self._medial_marked = False  # the leaves the medial surface crosses, marked on demand (query)
+        self._rim_marked = False  # and those the rim crosses
         clock = self._clock
         clock.reset()
         stream = wp.ScopedStream(self._stream) if self._stream is not None else contextlib.nullcontext()
