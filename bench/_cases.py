@@ -236,8 +236,9 @@ def finest_leaf_corners(distance_field, points: np.ndarray) -> np.ndarray:
 
 def rim_cells(distance_field, vertices: np.ndarray, faces: np.ndarray) -> set[tuple[int, int, int]]:
     """The finest cells (integer coordinates in the field's domain) that the mesh's rim passes through: its edges
-    that no other face runs the other way (vertex ids as given, so seams count), each sampled every eighth of a
-    cell. A subset of the leaves the engine marks (`mark_rim_leaves` widens each piece's box)."""
+    that no other face runs the other way, each sampled every eighth of a cell. The edges are taken over the vertex
+    ids as given, where the engine welds coincident vertices first: for a mesh without seams (duplicated vertices)
+    these cells are among the leaves the engine marks (`mark_rim_leaves`, which widens each piece's box)."""
     centre, side, cell = domain_of(distance_field)
     low = centre - side / 2.0
     f = np.asarray(faces, np.int64)
