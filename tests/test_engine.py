@@ -787,6 +787,17 @@ def test_a_soup_whose_rim_is_too_long_to_correct_is_warned_about(device, caplog)
         soup = DistanceField(soup_vertices, soup_faces, depth=3, device=device)
     assert soup.info()["rim_fans"] is None and soup.info()["sign"] == "winding"
     assert "more than 1024 fans" in caplog.text and "merge its coincident vertices" in caplog.text
+    # the leaves ADF queries answer exactly beside the rim are those of the welded rim's edges, the same in both
+    assert soup.info()["rim_edges"] == welded.info()["rim_edges"] == welded.info()["topology"]["boundary_edges"] > 0
+
+
+def test_a_closed_mesh_with_seams_has_no_rim_to_mark(device):
+    """spot's texture seams duplicate vertices along edges, which its weld joins: signed by winding numbers it has
+    no rim, so no leaf is marked for exact ADF answers (each seam would otherwise look like an opening)."""
+    vertices, faces = meshes.load("spot")
+    assert len(np.unique(vertices, axis=0)) < len(vertices)  # the seams' duplicated vertices
+    field = DistanceField(vertices, faces, depth=3, sign="winding", device=device)
+    assert field.info()["rim_edges"] == 0 and field.info()["topology"]["closed"]
 
 
 def _binary_expansion_walk(field: DistanceField, point: np.ndarray) -> tuple[float, float]:

@@ -821,6 +821,8 @@ class DistanceField:
             # fans closing the faces' boundary, which make winding numbers near 1/2 exact (0: none needed or no
             # sign; None: a rim longer than RIM_LIMIT, left to the walk)
             "rim_fans": self._rim_fans,
+            # edges of the welded rim, whose leaves a winding-signed field's ADF queries answer exactly (0: none)
+            "rim_edges": 0 if self._rim_edges is None else len(self._rim_edges),
             # the cube the octree covers: where the current frame has it (turned by the pose's rotation, if any)
             "domain": {"centre": self._domain_centre().tolist(), "side": self._domain.side,
                        "finest_cell": self._domain.side / (1 << self._depth)},
