@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One call on a GPU machine (the device tool): set up, check on CUDA, then time.
-#   bash bench/gpu_session.sh [tests] [engine] [rim] [random] [signs] [split] [far] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] [shapes] [binned] [slabs] [capped] ...
+#   bash bench/gpu_session.sh [tests] [engine] [rim] [rimprobe] [random] [signs] [split] [far] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] [shapes] [binned] [slabs] [capped] ...
 # Expects warp-lang and the wheels unpacked by ../shared/gpu/setup.sh (sourced before), the shared meshes
 # copied into $BADF_SHARED_DATA (default .gpudata/), and writes logs and JSON under $OUT.
 # The SAH shape's builder runs on Warp's CPU back-end, whose compiler ../shared/gpu/pack.sh leaves out: carry it as
@@ -108,7 +108,10 @@ for step in "$@"; do
       # near its surface and in its box, the three engines alternated
       python3 -m badf.bench.interleave --variant before=.ab/before --variant diagonal=.ab/head --variant rim=. \
         --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --depth 7 --rounds "${BADF_RIM_ROUNDS:-12}" --frames 10 \
-        --queries 10 --out "$out/rim-interleave.json" 2>&1 | grep -v '^Module' | tee "$out/rim-interleave.log"
+        --queries 10 --out "$out/rim-interleave.json" 2>&1 | grep -v '^Module' | tee "$out/rim-interleave.log" ;;
+    rimprobe)
+      # the rim rules' accuracy on CUDA (a bowl's rim at depths 4 to 6, the bunny's surface at 6 and 7; about two
+      # minutes, most of it the host's oracle), as docs/results/rim-leaves-h100-0051 has it on the CPU
       python3 bench/probes/probe_rim_jumps.py --device cuda:0 --bunny "$BADF_SHARED_DATA/stanford-bunny.npz" 2>&1 \
         | grep -v '^Module' | tee "$out/rim-probe-cuda.jsonl" ;;
     random)
