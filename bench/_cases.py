@@ -235,21 +235,17 @@ def finest_leaf_corners(distance_field, points: np.ndarray) -> np.ndarray:
 
 
 def rim_cells(distance_field, vertices: np.ndarray, faces: np.ndarray) -> set[tuple[int, int, int]]:
-    """The finest cells (integer coordinates in the field's domain) that the mesh's rim passes through: its edges
-    that no other face runs the other way, each sampled every eighth of a cell. The edges are taken over the vertex
-    ids as given, where the engine welds coincident vertices first: for a mesh without seams (duplicated vertices)
-    these cells are among the leaves the engine marks (`mark_rim_leaves`, which widens each piece's box)."""
+    """The finest cells (integer coordinates in the field's domain) that the mesh's rim passes through: the engine's
+    rim edges (`_sign.rim_edge_vertices`, welded), each sampled every eighth of a cell. These cells are among the
+    leaves the engine marks (`mark_rim_leaves`, which widens each piece's box)."""
+    from badf.server.adf._sign import analyse_topology, rim_edge_vertices
+
     centre, side, cell = domain_of(distance_field)
     low = centre - side / 2.0
-    f = np.asarray(faces, np.int64)
-    start, end = f.reshape(-1), np.roll(f, -1, axis=1).reshape(-1)
-    lo, hi = np.minimum(start, end), np.maximum(start, end)
-    edges, net = np.unique(np.stack([lo, hi], axis=1), axis=0, return_inverse=True)
-    use = np.zeros(len(edges), np.int64)
-    np.add.at(use, net.reshape(-1), np.where(start < end, 1, -1))
-    cells: set[tuple[int, int, int]] = set()
     v = np.asarray(vertices, np.float64)
-    for a, b in v[edges[use != 0]]:
+    edges = rim_edge_vertices(analyse_topology(np.asarray(faces, np.int64), v, fans=False), faces)
+    cells: set[tuple[int, int, int]] = set()
+    for a, b in v[edges]:
         t = np.linspace(0.0, 1.0, int(np.ceil(8.0 * np.linalg.norm(b - a) / cell)) + 2)[:, None]
         cells.update(map(tuple, np.floor((a + t * (b - a) - low) / cell).astype(np.int64)))
     return cells

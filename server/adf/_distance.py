@@ -871,24 +871,18 @@ def mark_rim_leaves(
     an edge as long as the domain's diagonal at depth 10 is about 3,600 pieces."""
     e = wp.tid()
     edge = rim_edges[e]
+    a = vertices[edge[0]]
+    b = vertices[edge[1]]
     inv_cell = 1.0 / tree.cell
-    a = (vertices[edge[0]] - tree.origin) * inv_cell
-    b = (vertices[edge[1]] - tree.origin) * inv_cell
-    top = float((1 << tree.depth) - 1)
-    pieces = int(wp.ceil(wp.min(wp.length(b - a), 4.0 * top) / _RIM_PIECE)) + 1
+    resolution = 1 << tree.depth
+    reach = wp.vec3(_RIM_REACH * tree.cell)
+    pieces = int(wp.ceil(wp.min(wp.length(b - a) * inv_cell, 4.0 * float(resolution)) / _RIM_PIECE)) + 1
     for k in range(pieces):
         p = a + (b - a) * (float(k) / float(pieces))
         q = a + (b - a) * (float(k + 1) / float(pieces))
-        low = wp.vec3i(
-            int(wp.floor(wp.clamp(wp.min(p[0], q[0]) - _RIM_REACH, 0.0, top))),
-            int(wp.floor(wp.clamp(wp.min(p[1], q[1]) - _RIM_REACH, 0.0, top))),
-            int(wp.floor(wp.clamp(wp.min(p[2], q[2]) - _RIM_REACH, 0.0, top))),
-        )
-        high = wp.vec3i(
-            int(wp.floor(wp.clamp(wp.max(p[0], q[0]) + _RIM_REACH, 0.0, top))),
-            int(wp.floor(wp.clamp(wp.max(p[1], q[1]) + _RIM_REACH, 0.0, top))),
-            int(wp.floor(wp.clamp(wp.max(p[2], q[2]) + _RIM_REACH, 0.0, top))),
-        )
+        # the cells a query's own quantisation puts the piece's box corners in
+        low = quantize(wp.min(p, q) - reach, tree.origin, inv_cell, resolution)
+        high = quantize(wp.max(p, q) + reach, tree.origin, inv_cell, resolution)
         for x in range(low[0], high[0] + 1):
             for y in range(low[1], high[1] + 1):
                 for z in range(low[2], high[2] + 1):

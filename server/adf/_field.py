@@ -65,6 +65,7 @@ from badf.server.adf._sign import (
     face_volumes,
     frame_watch_order,
     resolve_sign,
+    rim_edge_vertices,
     rim_fans,
     spread_sample,
     surface_enters_solid,
@@ -490,13 +491,11 @@ class DistanceField:
                         "points may read the wrong side. A mesh whose faces share no vertex ids (a triangle soup, as "
                         "STL stores) has every edge on its rim: merge its coincident vertices first", RIM_LIMIT)
         # the rim's edges (welded: a seam is no rim), whose leaves winding-signed ADF queries answer exactly
-        rim_edges = self._topology.rim_edges[:, :2] if self._sign == "winding" else np.zeros((0, 2), np.int64)
         self._rim_edges = None
-        if len(rim_edges):
-            vertex_of = np.empty(self._topology.welded_count, np.int64)  # a vertex id at each welded one
-            vertex_of[self._topology.welded_faces.reshape(-1)] = f.reshape(-1)
-            self._rim_edges = b.array("sign.rim_edges", len(rim_edges), wp.vec2i)
-            self._rim_edges.assign(vertex_of[rim_edges].astype(np.int32))
+        if self._sign == "winding" and len(self._topology.rim_edges):
+            edges = rim_edge_vertices(self._topology, f)
+            self._rim_edges = b.array("sign.rim_edges", len(edges), wp.vec2i)
+            self._rim_edges.assign(edges)
         self._bvh = Bvh(len(f), with_moments=self._sign != "none", buffers=b, shape=shape, rim=rim)
         self._octree = Octree(self._depth, self._refine, self._halo, b)
         self._octree.surface_area = area
