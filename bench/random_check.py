@@ -4,7 +4,9 @@
 
 Each case is drawn from its seed alone: a mesh (a piece of a shared mesh, a noisy or holed sphere, a soup with
 repeated corners, a sphere with duplicated and flipped faces, a folded sheet, a sphere scaled and moved far from
-the origin), options (depth 3 to 6, or as `--depths` says, every sign method, refinement, halo, coherence, now and
+the origin; since 2026-12-08 also a hollow shell, a box with a fin (an edge of three faces), a sphere with slivers
+and triangles of no area, a wide box beside a tiny sphere, two crossing spheres, a sphere with unused vertices far
+away, a torus, a box 1e-6 to 1e-2 thick, a sphere given twice, and a cone of up to 2,000 needles), options (depth 3 to 6, or as `--depths` says, every sign method, refinement, halo, coherence, now and
 then a band, a region or the SAH-shaped BVH) and up to three frames (a wobble, jitter from 1e-6 to 0.1 of the
 size, a throw of up to 1000 sizes, a collapse onto a plane, a scaling, or the same frame again), with float32 or
 float64 input, and far corners searched by subtree (CornerField.far_cells, which only CUDA chooses on its own) or
@@ -40,7 +42,9 @@ from badf.bench import _cases
 from badf.bench import _oracle as oracle
 from badf.bench._common import BenchFlagError, bench_device_name, start_warp, timestamp
 
-MESH_KINDS = ("shared piece", "noisy sphere", "soup", "holed sphere", "duplicates", "folded sheet", "far sphere")
+MESH_KINDS = ("shared piece", "noisy sphere", "soup", "holed sphere", "duplicates", "folded sheet", "far sphere",
+              "hollow shell", "fin", "slivers", "mixed sizes", "overlapping spheres", "unused vertices", "torus",
+              "thin plate", "double cover", "needle fan")
 MOTIONS = ("wobble", "jitter", "throw", "collapse", "scale", "same")
 SHARED_MESHES = ("spot", "fandisk", "stanford-bunny", "homer", "armadillo-86k")
 DEPTHS = (3, 6)  # the octree depths drawn from, both included (--depths)
@@ -59,7 +63,8 @@ def shared_meshes(names=SHARED_MESHES) -> dict[str, tuple[np.ndarray, np.ndarray
 
 
 def random_mesh(rng: np.random.Generator, shared: dict) -> tuple[str, np.ndarray, np.ndarray]:
-    """(kind, vertices float64, faces) of one of MESH_KINDS."""
+    """(kind, vertices float64, faces) of one of MESH_KINDS; three in ten of the kinds built here are then scaled by
+    1e-4 to 1e4 and moved up to 1e5 from the origin."""
     kinds = MESH_KINDS if shared else MESH_KINDS[1:]
     kind = str(rng.choice(kinds))
     if kind == "shared piece":
@@ -82,6 +87,10 @@ def random_mesh(rng: np.random.Generator, shared: dict) -> tuple[str, np.ndarray
         grid = np.arange(m * m).reshape(m, m)
         a, b, c, d = grid[:-1, :-1].ravel(), grid[:-1, 1:].ravel(), grid[1:, :-1].ravel(), grid[1:, 1:].ravel()
         faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    elif kind in _SOLIDS:
+        vertices, faces = _SOLIDS[kind](rng)
+        if rng.random() < 0.3:
+            vertices = vertices * 10.0 ** rng.uniform(-4, 4) + 10.0 ** rng.uniform(0, 5) * rng.normal(size=3)
     else:
         vertices, faces = _cases.icosphere(int(rng.integers(1, 4)))
         vertices = vertices * (1 + rng.normal(scale=float(rng.choice([0.0, 0.01, 0.2])), size=vertices.shape))
@@ -97,6 +106,104 @@ def random_mesh(rng: np.random.Generator, shared: dict) -> tuple[str, np.ndarray
     if len(faces) == 0:
         faces = np.array([[0, 1, 2]])
     return kind, np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+
+
+def _sphere(rng: np.random.Generator, radius: float = 1.0, centre=(0.0, 0.0, 0.0), most: int = 3):
+    vertices, faces = _cases.icosphere(int(rng.integers(1, most + 1)))
+    return vertices * radius + np.asarray(centre, np.float64), faces.astype(np.int64)
+
+
+def _joined(*parts: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """One mesh of several (vertices, faces), each part's faces renumbered after the vertices before it."""
+    starts = np.cumsum([0] + [len(v) for v, _ in parts[:-1]])
+    return (np.concatenate([v for v, _ in parts]),
+            np.concatenate([f + start for (_, f), start in zip(parts, starts)]))
+
+
+def _box(extents, subdivide: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    box = trimesh.creation.box(extents=extents)
+    box = box.subdivide() if subdivide else box
+    return np.asarray(box.vertices, np.float64), np.asarray(box.faces, np.int64)
+
+
+def _hollow_shell(rng):
+    """A sphere with a smaller one inside, turned inward: a closed solid with a cavity (the cavity is outside)."""
+    inner_v, inner_f = _sphere(rng, radius=rng.uniform(0.2, 0.95), most=2)
+    return _joined(_sphere(rng), (inner_v, inner_f[:, [0, 2, 1]]))
+
+
+def _fin(rng):
+    """A box with one more triangle on one of its edges: an edge of three faces (not a manifold)."""
+    vertices, faces = _box(rng.uniform(0.2, 2.0, 3))
+    edge = faces[int(rng.integers(0, len(faces)))][:2]
+    tip = vertices[edge].mean(axis=0) + rng.normal(size=3)
+    return np.vstack([vertices, tip]), np.vstack([faces, [[edge[0], edge[1], len(vertices)]]])
+
+
+def _slivers(rng):
+    """A sphere with a few corners moved onto (or within 1e-7 or 1e-4 of) their triangle's opposite edge: triangles of
+    no area, and needles."""
+    vertices, faces = _sphere(rng)
+    for a, b, c in faces[rng.integers(0, len(faces), size=int(rng.integers(1, 10)))]:
+        s = rng.uniform(0.0, 1.0)
+        vertices[a] = s * vertices[b] + (1 - s) * vertices[c] + float(rng.choice([0.0, 1e-7, 1e-4])) * rng.normal(size=3)
+    return vertices, faces
+
+
+def _mixed_sizes(rng):
+    """A wide flat box (10 x 10 x 0.1) and a sphere 1e-4 to 1e-1 across beside it: triangles of very different sizes."""
+    small = _sphere(rng, radius=10.0 ** rng.uniform(-4, -1), centre=rng.uniform(-1, 1, 3), most=2)
+    return _joined(_box([10.0, 10.0, 0.1]), small)
+
+
+def _overlapping_spheres(rng):
+    """Two spheres that cross each other: a closed mesh whose parts intersect."""
+    return _joined(_sphere(rng, most=2), _sphere(rng, radius=rng.uniform(0.5, 1.2), centre=(rng.uniform(0.1, 1.5), 0, 0),
+                                                 most=2))
+
+
+def _unused_vertices(rng):
+    """A sphere with vertices no face uses, up to 1e6 away."""
+    vertices, faces = _sphere(rng, most=2)
+    extra = rng.normal(size=(int(rng.integers(1, 20)), 3)) * 10.0 ** rng.uniform(0, 6)
+    return np.vstack([vertices, extra]), faces
+
+
+def _torus(rng):
+    import trimesh
+
+    torus = trimesh.creation.torus(major_radius=1.0, minor_radius=float(rng.uniform(0.01, 0.9)),
+                                   major_sections=int(rng.integers(8, 64)), minor_sections=int(rng.integers(4, 32)))
+    return np.asarray(torus.vertices, np.float64), np.asarray(torus.faces, np.int64)
+
+
+def _thin_plate(rng):
+    """A closed box 1e-6 to 1e-2 thick, its two sides far closer than a cell."""
+    return _box([1.0, 1.0, 10.0 ** rng.uniform(-6, -2)], subdivide=bool(rng.random() < 0.5))
+
+
+def _double_cover(rng):
+    """A sphere given twice, face for face (winding number 2 inside)."""
+    sphere = _sphere(rng, most=2)
+    return _joined(sphere, sphere)
+
+
+def _needle_fan(rng):
+    """A cone of 3 to 2,000 needles around its tip, closed by a fan of as many around the base's centre."""
+    n = int(rng.integers(3, 2000))
+    angle = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    rim = np.stack([np.cos(angle), np.sin(angle), np.zeros(n)], axis=1)
+    vertices = np.vstack([rim, [[0.0, 0.0, rng.uniform(0.01, 3.0)]], [[0.0, 0.0, 0.0]]])
+    i, j = np.arange(n), (np.arange(n) + 1) % n
+    faces = np.concatenate([np.stack([i, j, np.full(n, n)], 1), np.stack([j, i, np.full(n, n + 1)], 1)])
+    return vertices, faces
+
+
+_SOLIDS = {"hollow shell": _hollow_shell, "fin": _fin, "slivers": _slivers, "mixed sizes": _mixed_sizes,
+           "overlapping spheres": _overlapping_spheres, "unused vertices": _unused_vertices, "torus": _torus,
+           "thin plate": _thin_plate, "double cover": _double_cover, "needle fan": _needle_fan}
 
 
 def random_motion(vertices: np.ndarray, rng: np.random.Generator) -> tuple[str, np.ndarray]:
