@@ -2,35 +2,57 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 import warp as wp
 
 from badf.server.adf._buffers import DeviceBuffers, DeviceMemoryError, HostReadback, SharedScratch
-from badf.server.adf._hashset import UNLISTED, HashSet, HashSetView, set_insert
+from badf.server.adf._hashset import UNLISTED, HashSet, HashSetView, NarrowHashSetView, set_insert
 
 
 @wp.kernel(enable_backward=False)
-def _insert_keys(keys: wp.array(dtype=wp.int64), table: HashSetView):
+def _insert_keys(keys: wp.array(dtype=wp.int64), table: Any):
     set_insert(table, keys[wp.tid()])
 
 
+@wp.kernel(enable_backward=False)
+def _insert_keys_at(keys: wp.array(dtype=wp.int64), table: Any, slots: wp.array(dtype=wp.int32)):
+    slots[wp.tid()] = set_insert(table, keys[wp.tid()])
+
+
+for _view in (HashSetView, NarrowHashSetView):
+    wp.overload(_insert_keys, {"table": _view})
+    wp.overload(_insert_keys_at, {"table": _view})
+
+
+def _hash_set(device: str, narrow: bool) -> HashSet:
+    buffers = DeviceBuffers(wp.get_device(device))
+    return HashSet("set", buffers, SharedScratch("scratch", buffers), HostReadback(buffers.device), label="t",
+                   narrow=narrow)
+
+
+@pytest.mark.parametrize("narrow", [False, True], ids=["64-bit", "32-bit"])
 @pytest.mark.parametrize("distinct,expected", [(1, 1), (700, 700), (5000, 1200), (20011, 3), (150001, 3)])
-def test_hash_set_lists_every_distinct_key_once(device, distinct, expected):
+def test_hash_set_lists_every_distinct_key_once(device, distinct, expected, narrow):
     # each key arrives 1 to 5 times in random order; an expected count below the distinct one makes the
     # measuring pass try again with a larger table, whose size is no power of two. Far below (150,001 keys
     # into a first table of 1,024 slots), each key past the full table probed every slot: a pass stops
-    # early once the list has overflowed, and the passes after it find every key all the same
+    # early once the list has overflowed, and the passes after it find every key all the same. A narrow set
+    # (keys below 2^31, its table in 32 bits) lists and sorts them alike, into the same int64 list
     rng = np.random.default_rng(distinct)
-    unique = rng.choice(1 << 40, size=distinct, replace=False).astype(np.int64)
+    unique = rng.choice(1 << (31 if narrow else 40), size=distinct, replace=False).astype(np.int64)
+    if narrow and distinct > 1:
+        unique[:2] = [0, (1 << 31) - 2]  # the narrow range's ends: the largest key sorts before UNLISTED
     keys = rng.permutation(np.repeat(unique, rng.integers(1, 6, size=distinct)))
-    buffers = DeviceBuffers(wp.get_device(device))
-    table = HashSet("set", buffers, SharedScratch("scratch", buffers), HostReadback(buffers.device), label="t")
+    table = _hash_set(device, narrow)
     device_keys = wp.array(keys, dtype=wp.int64, device=device)
     count = table.insert_all(expected, lambda view: wp.launch(_insert_keys, dim=len(keys), inputs=[device_keys, view],
                                                                device=device), measure=True)
     assert count == distinct
-    listed, _ = table.sort_listed(0, 62)
+    assert table.view.keys.dtype == (wp.int32 if narrow else wp.int64)
+    listed, _ = table.sort_listed(0, 31 if narrow else 62)
     listed = listed.numpy()
     np.testing.assert_array_equal(listed[:distinct], np.sort(unique))
     assert np.all(listed[distinct : table.list_capacity] == UNLISTED)
@@ -43,17 +65,17 @@ def test_hash_set_lists_every_distinct_key_once(device, distinct, expected):
     np.testing.assert_array_equal(np.sort(table.view.listed_keys.numpy()[:distinct]), np.sort(unique))
 
 
+@pytest.mark.parametrize("narrow", [False, True], ids=["64-bit", "32-bit"])
 @pytest.mark.parametrize("together", [True, False])
-def test_a_key_inserted_by_many_threads_at_once_is_listed_once(device, together):
+def test_a_key_inserted_by_many_threads_at_once_is_listed_once(device, together, narrow):
     """Each of 3,000 keys inserted 27 times, by neighbouring threads (which meet at the same slot in the same
     instant, as a halo cell's 27 neighbours or a corner's eight cells do) or spread over the launch: a thread may
     read its slot before another's compare-and-swap lands, and every key is still listed exactly once, in the slot
     every one of its inserts returns."""
     rng = np.random.default_rng(27)
-    unique = rng.choice(1 << 40, size=3000, replace=False).astype(np.int64)
+    unique = rng.choice(1 << (31 if narrow else 40), size=3000, replace=False).astype(np.int64)
     keys = np.repeat(unique, 27) if together else rng.permutation(np.repeat(unique, 27))
-    buffers = DeviceBuffers(wp.get_device(device))
-    table = HashSet("set", buffers, SharedScratch("scratch", buffers), HostReadback(buffers.device), label="t")
+    table = _hash_set(device, narrow)
     device_keys = wp.array(keys, dtype=wp.int64, device=device)
     slots = wp.zeros(len(keys), dtype=wp.int32, device=device)
     count = table.insert_all(len(unique), lambda view: wp.launch(_insert_keys_at, dim=len(keys),
@@ -69,11 +91,8 @@ def test_a_key_inserted_by_many_threads_at_once_is_listed_once(device, together)
     for key, slot in zip(keys.tolist(), slots.tolist()):
         assert first.setdefault(key, slot) == slot  # and every insert of a key returned the same slot
     np.testing.assert_array_equal(table_keys[view.listed_slots.numpy()[:count]], listed)
-
-
-@wp.kernel(enable_backward=False)
-def _insert_keys_at(keys: wp.array(dtype=wp.int64), table: HashSetView, slots: wp.array(dtype=wp.int32)):
-    slots[wp.tid()] = set_insert(table, keys[wp.tid()])
+    # a narrow table takes 8 bytes a slot with its listed slots, against 12
+    assert view.keys.capacity == view.capacity * (4 if narrow else 8)
 
 
 def test_a_scratch_take_lays_its_arrays_apart_and_over_the_last_take(device, monkeypatch):

@@ -252,7 +252,7 @@ class Bvh:
             last = b.ensure("bvh.build.last", n - 1, wp.int32)
             prefix = b.ensure("bvh.build.prefix", n - 1, wp.int32)
             parent = b.ensure("bvh.build.parent", 2 * n - 1, wp.int32)
-            link_radix_tree(self.leaf_key, self.leaf_count, n, parent, left, right, first, prefix, last)
+            link_radix_tree(self.leaf_key, self.leaf_count, n, parent, first, prefix, children=(left, right), last=last)
             self._link(left, right, first, last)
         self._cuts.clear()
 
@@ -478,25 +478,27 @@ def link_radix_tree(
     count: wp.array,
     capacity: int,
     parent: wp.array,
-    left: wp.array,
-    right: wp.array,
     first: wp.array,
     prefix: wp.array,
+    *,
+    children: tuple[wp.array, wp.array] | None = None,
     last: wp.array | None = None,
 ) -> None:
     """Karras's parallel radix tree over the first count[0] (at most `capacity`) sorted, unique int64 keys;
     the count stays on the device.
 
-    Fills, for internal node i: children `left[i]`, `right[i]` (leaf k as count - 1 + k), the range of keys
-    under it `first[i]`..`last[i]`, its common-prefix length in code bits `prefix[i]`; and `parent` of every
-    node (-1 for the root).
+    Fills, for internal node i: the first key under it `first[i]` (and the last, `last[i]`, where asked), its
+    common-prefix length in code bits `prefix[i]`, and its `children` (left, right; leaf k as count - 1 + k) where
+    asked; and `parent` of every node (-1 for the root). The octree asks for neither children nor last: its
+    stage leaves out their two arrays of the cells' count.
     """
     parent.fill_(-1)
     if capacity > 1:
+        left, right = children if children is not None else (parent, parent)  # not written where not asked for
         wp.launch(
             _link_radix_tree,
             dim=capacity - 1,
-            inputs=[keys, count, capacity],
+            inputs=[keys, count, capacity, 1 if children is not None else 0, 1 if last is not None else 0],
             outputs=[parent, left, right, first, prefix, last if last is not None else first],
             device=keys.device,
         )
@@ -1012,6 +1014,8 @@ def _link_radix_tree(
     keys: wp.array(dtype=wp.int64),
     count_array: wp.array(dtype=wp.int32),
     capacity: int,
+    with_children: int,
+    with_last: int,
     parent: wp.array(dtype=wp.int32),
     left: wp.array(dtype=wp.int32),
     right: wp.array(dtype=wp.int32),
@@ -1060,12 +1064,14 @@ def _link_radix_tree(
     child_right = gamma + 1
     if hi == gamma + 1:
         child_right = leaf_base + gamma + 1
-    left[i] = child_left
-    right[i] = child_right
+    if with_children != 0:
+        left[i] = child_left
+        right[i] = child_right
     parent[child_left] = i
     parent[child_right] = i
     first[i] = lo
-    last[i] = hi
+    if with_last != 0:
+        last[i] = hi
     prefix[i] = node_prefix - (64 - KEY_TOP_BIT)
 
 

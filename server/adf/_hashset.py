@@ -12,11 +12,16 @@ can run without waiting on the host (and be captured as a CUDA graph): the count
 every later kernel clips it to the list's capacity, and the frame's owner checks it once at the end.
 The list beyond the count holds UNLISTED, which sorts after every key, so the whole list can be sorted
 without knowing the count.
+
+A set whose keys all stay below 2^31 (the octree's corners up to depth 9) can keep its table in 32 bits
+(`narrow`): the table, which is the largest of the octree's stages, takes a third less of the scratch, and the
+list is sorted in 32 bits. Its listed keys are int64 all the same, so what reads them does not change.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import warp as wp
 
@@ -24,6 +29,9 @@ from badf.server.adf._buffers import DeviceBuffers, SharedScratch
 
 EMPTY = wp.constant(wp.int64(-1))
 UNLISTED = (1 << 62) - 1  # every bit a sorted key range can use (keys stay below 2^62) is set
+NARROW_UNLISTED = (1 << 31) - 1  # UNLISTED in a narrow set's 32 bits (its keys stay below 2^31)
+_NARROW_UNLISTED = wp.constant(wp.int32(NARROW_UNLISTED))
+_UNLISTED = wp.constant(wp.int64(UNLISTED))
 _MIN_CAPACITY = 1024
 
 
@@ -37,6 +45,29 @@ class HashSetView:
     count: wp.array(dtype=wp.int32)  # (1,) distinct keys seen (may exceed list_capacity on overflow)
 
 
+@wp.struct
+class NarrowHashSetView:
+    """HashSetView whose table holds keys below 2^31 in 32 bits (its list is int64 like any set's)."""
+
+    keys: wp.array(dtype=wp.int32)  # (capacity,) table, EMPTY where free
+    capacity: int
+    listed_keys: wp.array(dtype=wp.int64)
+    listed_slots: wp.array(dtype=wp.int32)
+    list_capacity: int
+    count: wp.array(dtype=wp.int32)
+
+
+@wp.func
+def _in_table(table: HashSetView, key: wp.int64) -> wp.int64:
+    """A key as the table holds it."""
+    return key
+
+
+@wp.func
+def _in_table(table: NarrowHashSetView, key: wp.int64) -> wp.int32:
+    return wp.int32(key)
+
+
 @wp.func
 def _hash(key: wp.int64) -> wp.uint64:
     # splitmix64's finaliser: every input bit moves every output bit
@@ -47,28 +78,30 @@ def _hash(key: wp.int64) -> wp.uint64:
 
 
 @wp.func
-def listed_count(table: HashSetView) -> int:
+def listed_count(table: Any) -> int:
     """How many keys the list holds (the count clipped to the list's capacity)."""
     return wp.min(table.count[0], table.list_capacity)
 
 
 @wp.func
-def set_insert(table: HashSetView, key: wp.int64) -> int:
+def set_insert(table: Any, key: wp.int64) -> int:
     """Insert key; returns its table slot, or -1 when the table is full or the list has overflowed (more
     distinct keys than it holds: the pass is run again with a larger table, so this one may stop early).
     Without that stop, a table that keys overfill took each later key through every slot: a mesh of 4,000
     tiny parts, whose cells a first estimate from its area far undercounts, took 25 s to build on the CPU
     (twelfth outside check)."""
     slot = int(_hash(key) % wp.uint64(table.capacity))
+    empty = _in_table(table, EMPTY)
+    stored = _in_table(table, key)
     for probe in range(table.capacity):
-        previous = wp.atomic_cas(table.keys, slot, EMPTY, key)
-        if previous == EMPTY:
+        previous = wp.atomic_cas(table.keys, slot, empty, stored)
+        if previous == empty:
             index = wp.atomic_add(table.count, 0, 1)
             if index < table.list_capacity:
                 table.listed_keys[index] = key
                 table.listed_slots[index] = slot
             return slot
-        if previous == key:
+        if previous == stored:
             return slot
         slot += 1
         if slot == table.capacity:
@@ -82,11 +115,14 @@ def set_insert(table: HashSetView, key: wp.int64) -> int:
 class HashSet:
     """Device buffers of one hash set, reused from frame to frame."""
 
-    def __init__(self, name: str, buffers: DeviceBuffers, scratch: SharedScratch, host_counts, *, label: str):
+    def __init__(self, name: str, buffers: DeviceBuffers, scratch: SharedScratch, host_counts, *, label: str,
+                 narrow: bool = False):
         """`name` names the listed keys' buffer, which sets alive at different times may share; `label`
         names this set's count, which is read at the end of the frame. The table and the listed slots,
-        which live only while keys go in and are sorted, are taken from `scratch`."""
+        which live only while keys go in and are sorted, are taken from `scratch`; `narrow`: every key is below
+        2^31, and the table holds them in 32 bits (its view is a NarrowHashSetView)."""
         self.name = name
+        self.narrow = narrow
         self.scratch = scratch
         self.label = label
         self.buffers = buffers
@@ -118,13 +154,12 @@ class HashSet:
                 return count
             expected = 2 * max(count, expected)
 
-    @staticmethod
-    def scratch_layout(expected: int, beside: tuple[tuple[int, type], ...] = ()) -> tuple[tuple[int, type], ...]:
-        """What a set expecting that many keys takes from the scratch: its table, and the listed slots, which hold
+    def scratch_layout(self, expected: int, beside: tuple[tuple[int, type], ...] = ()) -> tuple[tuple[int, type], ...]:
+        """What this set expecting that many keys takes from the scratch: its table, and the listed slots, which hold
         twice the list, as radix_sort_pairs needs (the listed keys are sorted in the spent table, which is as
         long: sort_listed); then the arrays `beside` (insert_all)."""
         capacity = max(2 * expected, _MIN_CAPACITY)
-        return ((capacity, wp.int64), (capacity, wp.int32), *beside)
+        return ((capacity, wp.int32 if self.narrow else wp.int64), (capacity, wp.int32), *beside)
 
     @staticmethod
     def list_capacity_for(expected: int) -> int:
@@ -135,7 +170,7 @@ class HashSet:
         layout = self.scratch_layout(expected, beside)
         capacity = layout[0][0]
         b = self.buffers
-        view = HashSetView()
+        view = NarrowHashSetView() if self.narrow else HashSetView()
         view.keys, view.listed_slots, *arrays = self.scratch.take(*layout)
         view.keys.fill_(-1)
         view.capacity = capacity
@@ -148,7 +183,7 @@ class HashSet:
         return view, arrays
 
     @property
-    def view(self) -> HashSetView:
+    def view(self) -> HashSetView | NarrowHashSetView:
         return self._view
 
     @property
@@ -159,19 +194,41 @@ class HashSet:
         """The table's memory as (capacity,) int32, for a caller done inserting (the table is not read
         again, and the listed keys and slots are elsewhere)."""
         table = self._view.keys
-        return wp.array(ptr=table.ptr, dtype=wp.int32, shape=table.shape, device=self.device)
+        return table if self.narrow else wp.array(ptr=table.ptr, dtype=wp.int32, shape=table.shape, device=self.device)
 
     def sort_listed(self, begin_bit: int, end_bit: int) -> tuple[wp.array, wp.array]:
         """Sort the whole list (with the slots): the listed keys in order, then UNLISTED; (keys, slots).
 
         The table is spent once every key is in, and it is twice the list's length, the room radix_sort_pairs
         needs: the keys are sorted there and copied back, so the list, which outlives the frame (the corners'
-        keys are the next frame's coherence), holds no room of its own (2 MB for the bunny's corners)."""
+        keys are the next frame's coherence), holds no room of its own (2 MB for the bunny's corners). A narrow
+        set's keys are sorted in 32 bits there, UNLISTED as NARROW_UNLISTED, whose bits of the range are all set
+        as well."""
         v = self._view
-        wp.copy(v.keys, v.listed_keys, count=v.list_capacity)
+        if self.narrow:
+            wp.launch(_narrow_keys, dim=v.list_capacity, inputs=[v.listed_keys], outputs=[v.keys], device=self.device)
+        else:
+            wp.copy(v.keys, v.listed_keys, count=v.list_capacity)
         wp.utils.radix_sort_pairs(v.keys, v.listed_slots, v.list_capacity, begin_bit=begin_bit, end_bit=end_bit)
-        wp.copy(v.listed_keys, v.keys, count=v.list_capacity)
+        if self.narrow:
+            wp.launch(_widen_keys, dim=v.list_capacity, inputs=[v.keys], outputs=[v.listed_keys], device=self.device)
+        else:
+            wp.copy(v.listed_keys, v.keys, count=v.list_capacity)
         return v.listed_keys, v.listed_slots
+
+
+@wp.kernel(enable_backward=False)
+def _narrow_keys(keys: wp.array(dtype=wp.int64), narrow: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    key = keys[i]
+    narrow[i] = wp.where(key == _UNLISTED, _NARROW_UNLISTED, wp.int32(key))
+
+
+@wp.kernel(enable_backward=False)
+def _widen_keys(narrow: wp.array(dtype=wp.int32), keys: wp.array(dtype=wp.int64)):
+    i = wp.tid()
+    key = narrow[i]
+    keys[i] = wp.where(key == _NARROW_UNLISTED, _UNLISTED, wp.int64(key))
 
 
 def with_headroom(count: int) -> int:

@@ -21,14 +21,15 @@ children that hold no surface are empty leaves, whose corners come from their pa
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import warp as wp
 
 from badf.server.adf._buffers import DeviceBuffers, HostReadback, KeptViews, SharedScratch
 from badf.server.adf._bvh import link_radix_tree
-from badf.server.adf._hashset import UNLISTED, HashSet, HashSetView, listed_count, set_insert, with_headroom
+from badf.server.adf._hashset import (UNLISTED, HashSet, HashSetView, NarrowHashSetView, listed_count, set_insert,
+                                      with_headroom)
 from badf.server.adf._geometry import KEY_TOP_BIT, morton3, morton3_decode, popcount, quantize, triangle_overlaps_cube
 from badf.server.adf._tolerances import CELL_OVERLAP_SLACK
 
@@ -112,7 +113,9 @@ class Octree:
         self.cell_set = HashSet("oct.set", buffers, self.scratch, self.host, label="cells")
         self.surface_count = buffers.ensure("oct.surface_count", 1, wp.int32)  # cells listed before the halo's
         self.surface_planned = 0  # the halo pass's threads: surface cells planned for (set by a measuring build)
-        self.corner_set = HashSet("oct.set", buffers, self.scratch, self.host, label="corners")
+        # corner keys take 3 (depth + 1) bits: up to depth 9 the corners' table holds them in 32 bits
+        self.corner_set = HashSet("oct.set", buffers, self.scratch, self.host, label="corners",
+                                  narrow=3 * (depth + 1) < 31)
         self.surface_area = 0.0  # set by the owner: sizes the first frame's surface-cell set
         # planned capacities (set by a measuring build)
         self.node_capacity = 0
@@ -229,10 +232,10 @@ class Octree:
         """A planned frame knows every stage's sizes: its scratch takes the largest stage's room up front, with the
         layouts `after` its owner takes from it later in the frame. A first frame then grows it once, where it grew
         at the radix tree's stage and again at the corner set's, each time waiting for the device."""
-        cells = HashSet.scratch_layout(self.cell_set.planned, self._row_layout(face_count))
+        cells = self.cell_set.scratch_layout(self.cell_set.planned, self._row_layout(face_count))
         self.scratch.reserve(cells, self._tree_layout(HashSet.list_capacity_for(self.cell_set.planned)),
                              self._node_sort_layout(), self._link_layout(),
-                             HashSet.scratch_layout(self.corner_set.planned), *after)
+                             self.corner_set.scratch_layout(self.corner_set.planned), *after)
 
     def _row_layout(self, face_count: int) -> tuple[tuple[int, type], ...]:
         """Each triangle's row count and their running sum, which the surface cells' insert reads (beside the cell
@@ -334,8 +337,8 @@ class Octree:
         capacity = self.cell_set.list_capacity
         tree_nodes = 2 * capacity - 1
         # the cell set's table and slots are dead: the radix tree and its edges' counts take their place
-        parent, left, right, first, prefix, counts, offsets = self.scratch.take(*self._tree_layout(capacity))
-        link_radix_tree(cell_keys, self.cell_count, capacity, parent, left, right, first, prefix)
+        parent, first, prefix, counts, offsets = self.scratch.take(*self._tree_layout(capacity))
+        link_radix_tree(cell_keys, self.cell_count, capacity, parent, first, prefix)
 
         wp.launch(_count_octree_nodes, dim=tree_nodes, inputs=[parent, prefix, self.cell_count, capacity, d],
                   outputs=[counts], device=self.device)
@@ -362,11 +365,11 @@ class Octree:
 
     @staticmethod
     def _tree_layout(capacity: int) -> tuple[tuple[int, type], ...]:
-        """The radix tree over `capacity` cells (parent, left, right, first, prefix) and its edges' counts and
-        offsets, in the scratch."""
+        """The radix tree over `capacity` cells (parent, first, prefix: Algorithm 1 reads no children) and its edges'
+        counts and offsets, in the scratch."""
         tree_nodes = 2 * capacity - 1
-        return ((tree_nodes, wp.int32), (capacity, wp.int32), (capacity, wp.int32), (capacity, wp.int32),
-                (capacity, wp.int32), (tree_nodes, wp.int32), (tree_nodes, wp.int32))
+        return ((tree_nodes, wp.int32), (capacity, wp.int32), (capacity, wp.int32), (tree_nodes, wp.int32),
+                (tree_nodes, wp.int32))
 
     def _node_sort_layout(self) -> tuple[tuple[int, type], ...]:
         return (2 * self.node_capacity, wp.int64), (2 * self.node_capacity, wp.int32)
@@ -799,7 +802,7 @@ def _insert_corners(
     node_keys: wp.array(dtype=wp.int64),
     totals: wp.array(dtype=wp.int32),
     depth: int,
-    table: HashSetView,
+    table: Any,  # HashSetView or NarrowHashSetView (overloads below)
     corner_slot: wp.array(dtype=wp.int32),
 ):
     # lattice point t (x, y, z in 0..2) of the children of internal node i // 27; its table slot for now
@@ -820,10 +823,15 @@ def _insert_corners(
 
 
 @wp.kernel(enable_backward=False)
-def _rank_slots(slots: wp.array(dtype=wp.int32), table: HashSetView, rank: wp.array(dtype=wp.int32)):
+def _rank_slots(slots: wp.array(dtype=wp.int32), table: Any, rank: wp.array(dtype=wp.int32)):
     r = wp.tid()
     if r < listed_count(table):
         rank[slots[r]] = r
+
+
+for _view in (HashSetView, NarrowHashSetView):  # the corners' table, in 64 bits or (up to depth 9) in 32
+    wp.overload(_insert_corners, {"table": _view})
+    wp.overload(_rank_slots, {"table": _view})
 
 
 @wp.kernel(enable_backward=False)
