@@ -882,8 +882,17 @@ def test_slice_grid_and_crossing_cells(device):
     field = DistanceField(vertices, faces, depth=depth, device=device)
     centre, side = domain_of(field)
     position = float(centre[1] + 0.05 * side)
+    scratch = field.stats()["memory_bytes"]["scratch"]
     cut = field.slice("y", position, resolution=(48, 32))
     assert cut.distance.shape == (32, 48) and cut.axis == "y"
+    # its cells' buffers are sized for what a plane can cross (one layer of the grid at each level), not for every
+    # child of a refined node (7.7 MB for the bunny at depth 7, against 0.9)
+    from badf.server.adf._slice import crossing_bound
+
+    counts = field.stats()["counts"]
+    bound = crossing_bound(np.array(counts["nodes_per_level"]), depth, depth)
+    assert len(cut.cell_level) <= bound < 8 * counts["internal_nodes"] + 1
+    assert field.stats()["memory_bytes"]["scratch"] - scratch <= 40 * bound + 4 * 256
     # a slice is counted as one, not as a query of its grid's points (sixteenth outside check)
     stats = field.stats()
     assert (stats["slices"], stats["queries"], stats["query_points"]) == (1, 0, 0) and stats["last_slice_ms"] > 0

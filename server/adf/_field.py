@@ -749,7 +749,7 @@ class DistanceField:
         o = self._octree
         with wp.ScopedDevice(self._device):
             lower, upper, level, leaf, empty = self._slice_cells.cells(
-                o.node_keys, o.child_mask, o.internal_count, self._depth, axis_index,
+                o.node_keys, o.child_mask, o.internal_count, o.level_counts, self._depth, axis_index,
                 float((position - centre[axis_index]) * self._domain.scale), self._domain.local_side, max_level,
             )
         for corners in (lower, upper):
