@@ -1247,9 +1247,9 @@ def test_a_plan_a_violent_frame_outgrew_is_given_back_once_frames_settle(device,
         measured.update(frame)
         steady.update(vertices if frame is soup else frame)
         _assert_same_fields(field, measured, points)
-        if frame is soup:  # what the octree's plan sizes: the field, coherence and scratch
-            soup_held = planned_bytes(field)
-            assert soup_held > 2 * planned_bytes(steady)
+        if frame is soup:  # what the octree's plan sizes: the field, coherence and scratch (1.9 times the steady
+            soup_held = planned_bytes(field)  # object's since the octree's scratch shrank, 2026-12-08)
+            assert soup_held > 1.5 * planned_bytes(steady)
     stats = field.stats()
     assert stats["plans_given_back"] == 1 and stats["replans"] == 1  # the soup's, and none after the give-back
     assert stats["domain_moves"] == 0
