@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One call on a GPU machine (the device tool): set up, check on CUDA, then time.
-#   bash bench/gpu_session.sh [tests] [engine] [rim] [rimprobe] [random] [signs] [split] [far] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] [shapes] [binned] [slabs] [capped] ...
+#   bash bench/gpu_session.sh [tests] [engine] [scratch] [rim] [rimprobe] [random] [signs] [split] [far] [kernels] [service] [viewer] [scaleout] [accuracy] [soak] [shapes] [binned] [slabs] [capped] ...
 # Expects warp-lang and the wheels unpacked by ../shared/gpu/setup.sh (sourced before), the shared meshes
 # copied into $BADF_SHARED_DATA (default .gpudata/), and writes logs and JSON under $OUT.
 # The SAH shape's builder runs on Warp's CPU back-end, whose compiler ../shared/gpu/pack.sh leaves out: carry it as
@@ -109,6 +109,15 @@ for step in "$@"; do
       python3 -m badf.bench.interleave --variant before=.ab/before --variant diagonal=.ab/head --variant rim=. \
         --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --depth 7 --rounds "${BADF_RIM_ROUNDS:-12}" --frames 10 \
         --queries 10 --out "$out/rim-interleave.json" 2>&1 | grep -v '^Module' | tee "$out/rim-interleave.log" ;;
+    scratch)
+      # the octree's smaller scratch (2026-12-08: no child links, 32-bit corner table and node sort, in-place scan,
+      # slice buffers by what a plane crosses) against the engine before it, alternated; the bunny at depths 7 and
+      # 8. Here: bash bench/ab.sh prepare before=13e2db7, carry .ab
+      for depth in 7 8; do
+        python3 -m badf.bench.interleave --variant before=.ab/before --variant scratch=. \
+          --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --depth $depth --rounds "${BADF_SCRATCH_ROUNDS:-8}" --frames 10 \
+          --out "$out/scratch-interleave-d$depth.json" 2>&1 | grep -v '^Module' | tee "$out/scratch-interleave-d$depth.log"
+      done ;;
     rimprobe)
       # the rim rules' accuracy on CUDA (a bowl's rim at depths 4 to 6, the bunny's surface at 6 and 7; about two
       # minutes, most of it the host's oracle), as docs/results/rim-leaves-h100-0051 has it on the CPU
