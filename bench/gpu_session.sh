@@ -112,9 +112,9 @@ for step in "$@"; do
     scratch)
       # the octree's smaller scratch (2026-12-08: no child links, 32-bit corner table and node sort, in-place scan,
       # slice buffers by what a plane crosses) against the engine before it, alternated; the bunny at depths 7 and
-      # 8. Here: bash bench/ab.sh prepare before=13e2db7, carry .ab
+      # 8. Here: bash bench/ab.sh prepare scratchbase=13e2db7, carry .ab
       for depth in 7 8; do
-        python3 -m badf.bench.interleave --variant before=.ab/before --variant scratch=. \
+        python3 -m badf.bench.interleave --variant before=.ab/scratchbase --variant scratch=. \
           --mesh "$BADF_SHARED_DATA/stanford-bunny.npz" --depth $depth --rounds "${BADF_SCRATCH_ROUNDS:-8}" --frames 10 \
           --out "$out/scratch-interleave-d$depth.json" 2>&1 | grep -v '^Module' | tee "$out/scratch-interleave-d$depth.log"
       done ;;
