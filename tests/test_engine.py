@@ -917,6 +917,10 @@ def test_slice_grid_and_crossing_cells(device):
     assert np.all((cut.cell_lower[:, 1] <= position + 1e-6) & (position <= cut.cell_upper[:, 1] + 1e-6))
     shallow = field.slice("y", position, resolution=8, max_level=3)
     assert shallow.cell_level.max() <= 3 and len(shallow.cell_level) < len(cut.cell_level)
+    # a plane beside the domain crosses no cell, and its grid is answered exactly
+    beside = field.slice("y", float(centre[1] + side), resolution=8)
+    assert beside.cell_level.shape == (0,) and beside.cell_lower.shape == (0, 3) and beside.cell_is_leaf.dtype == bool
+    assert np.all(np.isfinite(beside.distance)) and beside.distance.min() > 0
 
 
 @pytest.mark.parametrize("where", [-0.5, -0.25, 0.0, 0.125, 0.5])

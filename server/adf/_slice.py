@@ -101,6 +101,9 @@ class SliceCells:
         n = self.host.read(count, 0)
         if n > lower.shape[0]:  # not where level_counts are this frame's; the cells' own count is a bound
             raise RuntimeError(f"a slice crossed {n} cells, more than the {lower.shape[0]} its levels allow")
+        if n == 0:  # a plane outside the domain (no zero-length copies from the device)
+            none = np.zeros(0, dtype=bool)
+            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.uint8), none, none
         # only the cells listed come back (on CUDA the buffers were copied whole before: 7.7 MB for the bunny at 7)
         kinds = kind[:n].numpy()
         return (lower[:n].numpy().copy(), upper[:n].numpy().copy(), level[:n].numpy().astype(np.uint8),
