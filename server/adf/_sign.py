@@ -469,19 +469,21 @@ def _rim_edges_renamed(topology: Topology, ids: np.ndarray, count: int) -> tuple
 def rim_edge_vertices(topology: Topology, faces: np.ndarray) -> np.ndarray:
     """(R, 2) int32: the welded rim's edges (`Topology.rim_edges`: a seam is none), each end named by one of the
     vertex ids that `faces` (the faces `topology` was analysed from) use at that welded vertex."""
-    vertex_of = np.empty(topology.welded_count, np.int64)
-    vertex_of[topology.welded_faces.reshape(-1)] = np.asarray(faces).reshape(-1)
-    return vertex_of[topology.rim_edges[:, :2]].astype(np.int32).reshape(-1, 2)
+    return _an_id_per_weld(topology, faces)[topology.rim_edges[:, :2]].astype(np.int32).reshape(-1, 2)
 
 
 def ids_by_weld(topology: Topology, faces: np.ndarray) -> np.ndarray | None:
     """The vertex id that `faces` name at each welded vertex of their `topology`; None where the weld made one
     vertex of two or more of their ids."""
-    raw = np.asarray(faces, dtype=np.int64).reshape(-1)
-    welded = topology.welded_faces.reshape(-1)
+    ids = _an_id_per_weld(topology, faces)
+    return None if np.any(ids[topology.welded_faces.reshape(-1)] != np.asarray(faces).reshape(-1)) else ids
+
+
+def _an_id_per_weld(topology: Topology, faces: np.ndarray) -> np.ndarray:
+    """One of the vertex ids that `faces` name at each welded vertex of their `topology` (the last written)."""
     ids = np.empty(topology.welded_count, dtype=np.int64)
-    ids[welded] = raw  # one of the ids at each welded vertex (the last written)
-    return None if np.any(ids[welded] != raw) else ids
+    ids[topology.welded_faces.reshape(-1)] = np.asarray(faces, dtype=np.int64).reshape(-1)
+    return ids
 
 
 def _vertex_components(faces: np.ndarray, vertex_count: int) -> np.ndarray:

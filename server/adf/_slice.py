@@ -99,7 +99,7 @@ class SliceCells:
             device=self.device,
         )
         n = self.host.read(count, 0)
-        if n > lower.shape[0]:  # not where level_counts are this frame's; the cells' own count is a bound
+        if n > lower.shape[0]:  # crossing_bound holds for any octree: only level_counts of another frame pass it
             raise RuntimeError(f"a slice crossed {n} cells, more than the {lower.shape[0]} its levels allow")
         if n == 0:  # a plane outside the domain (no zero-length copies from the device)
             none = np.zeros(0, dtype=bool)
